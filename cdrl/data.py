@@ -1,0 +1,160 @@
+"""Feeding episodes to the trainer: aligned T-step chunks of B independent streams.
+
+An episode source is any sequence of `Episode`s (`len` and integer indexing): a list in
+memory, a synthetic generator, or an on-disk data set that loads one episode at a time.
+Each of the B streams walks its own share of the episodes (stream b takes every B-th
+episode of a seeded shuffle, epoch after epoch); its transitions (o_t, a_t, o_{t+1},
+r_{t+1}) are cut into consecutive chunks of T steps. When an episode ends inside a chunk
+the stream goes on with its next episode and marks the step `is_first`, so the model's
+carry resets there. The stream's position is a small cursor (`state_dict`) for exact resume.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from cdrl.episode import Episode
+from cdrl.train import Chunk
+
+
+class ChunkStream:
+    """Yields `Chunk`s of numpy arrays `[T, B, ...]` from an episode source, forever."""
+
+    def __init__(
+        self,
+        episodes: Sequence[Episode],
+        batch: int,
+        unroll: int,
+        image_size: int | None = None,
+        action_dim: int = 3,
+        seed: int = 0,
+        shuffle: bool = True,
+    ):
+        if unroll < 1:
+            raise ValueError(f"unroll length T must be >= 1, got {unroll}")
+        if batch < 1:
+            raise ValueError(f"batch size B must be >= 1, got {batch}")
+        if len(episodes) == 0:
+            raise ValueError("the episode source is empty")
+        self.episodes, self.batch, self.unroll = episodes, batch, unroll
+        self.image_size, self.action_dim = image_size, action_dim
+        self.seed, self.shuffle = seed, shuffle
+        self.slot = np.arange(batch, dtype=np.int64)  # index into the endless episode order
+        self.pos = np.zeros(batch, dtype=np.int64)  # next transition within that episode
+        self._perms: dict[int, np.ndarray] = {}
+        self._cache: dict[int, Episode] = {}
+
+    # ---- cursor
+    def state_dict(self) -> dict:
+        return {"slot": self.slot.tolist(), "pos": self.pos.tolist(), "seed": self.seed}
+
+    def load_state_dict(self, state: dict) -> None:
+        if len(state["slot"]) != self.batch:
+            raise ValueError(f"stream cursor is for {len(state['slot'])} streams, this stream has {self.batch}")
+        self.slot = np.asarray(state["slot"], np.int64)
+        self.pos = np.asarray(state["pos"], np.int64)
+        self.seed = int(state["seed"])
+
+    # ---- episodes
+    def _episode_index(self, slot: int) -> int:
+        n = len(self.episodes)
+        epoch, i = divmod(int(slot), n)
+        if not self.shuffle:
+            return i
+        if epoch not in self._perms:
+            if len(self._perms) > 4:
+                self._perms.pop(min(self._perms))
+            self._perms[epoch] = np.random.default_rng([self.seed, epoch]).permutation(n)
+        return int(self._perms[epoch][i])
+
+    def _episode(self, index: int) -> Episode:
+        if index not in self._cache:
+            if len(self._cache) >= 2 * self.batch:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[index] = self._check(index, self.episodes[index])
+        return self._cache[index]
+
+    def _check(self, index: int, ep: Episode) -> Episode:
+        if len(ep) < 2:
+            raise ValueError(f"episode {index} has {len(ep)} frame(s); at least 2 are needed for one transition")
+        h, w = ep.frames.shape[1:]
+        if self.image_size is not None and (h, w) != (self.image_size, self.image_size):
+            raise ValueError(
+                f"episode {index} has frames of {h}x{w}, the model expects "
+                f"{self.image_size}x{self.image_size}"
+            )
+        if ep.actions.shape[1] != self.action_dim:
+            raise ValueError(f"episode {index} has {ep.actions.shape[1]} action values, expected {self.action_dim}")
+        return ep
+
+    # ---- chunks
+    def next_chunk(self) -> Chunk:
+        T, B = self.unroll, self.batch
+        first = self._episode(self._episode_index(self.slot[0]))
+        h, w = first.frames.shape[1:]
+        obs = np.empty((T, B, h, w), first.frames.dtype)
+        nxt = np.empty_like(obs)
+        action = np.empty((T, B, self.action_dim), np.float32)
+        reward = np.empty((T, B), np.float32)
+        is_first = np.zeros((T, B), bool)
+        for b in range(B):
+            t = 0
+            while t < T:
+                ep = self._episode(self._episode_index(self.slot[b]))
+                p = int(self.pos[b])
+                n = min(T - t, len(ep) - 1 - p)
+                if ep.frames.dtype != obs.dtype:
+                    raise ValueError(f"episodes mix frame dtypes {ep.frames.dtype} and {obs.dtype}")
+                obs[t : t + n, b] = ep.frames[p : p + n]
+                nxt[t : t + n, b] = ep.frames[p + 1 : p + 1 + n]
+                action[t : t + n, b] = ep.actions[p : p + n]
+                reward[t : t + n, b] = ep.rewards[p + 1 : p + 1 + n]
+                is_first[t, b] = p == 0
+                t += n
+                if p + n == len(ep) - 1:
+                    self.slot[b] += B
+                    self.pos[b] = 0
+                else:
+                    self.pos[b] = p + n
+        return Chunk(obs=obs, next_obs=nxt, action=action, reward=reward, is_first=is_first)
+
+    def __iter__(self):
+        while True:
+            yield self.next_chunk()
+
+
+def synthetic_episodes(
+    num: int, length: int, size: int, seed: int = 0, action_dim: int = 3, pushed: bool = True
+) -> list[Episode]:
+    """Learnable moving shapes: a blob bouncing on its own and (if `pushed`) a blob pushed
+    by the actions.
+
+    The first blob moves with a constant velocity and bounces off the edges (predictable
+    from two frames); the second moves right by (a_0 - a_1) and down by (a_2 - 0.5), so
+    only action-conditioned models can predict it. Actions are uniform in [0, 1].
+    Frames are uint8 on a black background.
+    """
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    sigma = size / 12
+    episodes = []
+    for _ in range(num):
+        pos = rng.uniform(0.2, 0.8, 2) * size
+        vel = rng.choice([-1, 1], 2) * rng.uniform(0.05, 0.09, 2) * size
+        push = rng.uniform(0.3, 0.7, 2) * size
+        actions = rng.uniform(0, 1, (length, action_dim)).astype(np.float32)
+        frames = np.empty((length, size, size), np.uint8)
+        for t in range(length):
+            blob = np.exp(-((xx - pos[1]) ** 2 + (yy - pos[0]) ** 2) / (2 * sigma**2))
+            other = 0.6 * pushed * np.exp(-((xx - push[1]) ** 2 + (yy - push[0]) ** 2) / (2 * sigma**2))
+            frames[t] = np.round(255 * np.clip(blob + other, 0, 1))
+            pos = pos + vel
+            for d in range(2):
+                if not 0 <= pos[d] <= size - 1:
+                    vel[d] = -vel[d]
+                    pos[d] = np.clip(pos[d], 0, size - 1)
+            step = np.array([actions[t, 2] - 0.5, actions[t, 0] - actions[t, 1]])
+            push = np.clip(push + 0.08 * size * step, 0, size - 1)
+        episodes.append(Episode(frames, actions, np.zeros(length, np.float32)))
+    return episodes

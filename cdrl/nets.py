@@ -1,0 +1,182 @@
+"""The networks of the thesis (section 4.3.1) as pure functions over parameter pytrees.
+
+Every network is a pair `init_*(key, ...) -> params` and `apply(params, ..., x) -> y`.
+Parameters are nested dicts of arrays (one leaf per kernel and per bias, the thesis's
+"independently initialised parameter groups"); static sizes come from `ArchConfig`.
+Images are NHWC inside the networks; the public encode/decode functions take and return
+`[B, H, W]` frames. Initialisation: LeCun-normal for layers followed by SELU, Glorot for
+the rest (LSTM, the sigmoid output layers, linear heads).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from cdrl.config import ArchConfig
+
+Params = dict
+
+_lecun = jax.nn.initializers.lecun_normal()
+_glorot = jax.nn.initializers.glorot_uniform()
+_DIMS = ("NHWC", "HWIO", "NHWC")
+
+
+def _dense_init(key, n_in: int, n_out: int, selu: bool) -> Params:
+    init = _lecun if selu else _glorot
+    return {"kernel": init(key, (n_in, n_out), jnp.float32), "bias": jnp.zeros((n_out,), jnp.float32)}
+
+
+def dense(params: Params, x: jax.Array) -> jax.Array:
+    return x @ params["kernel"] + params["bias"]
+
+
+# --------------------------------------------------------------------------- MLPs
+
+
+def init_mlp(key, sizes: tuple[int, ...], final_selu: bool) -> Params:
+    """An MLP with layer widths `sizes` (input first); SELU after every hidden layer."""
+    keys = jax.random.split(key, len(sizes) - 1)
+    n = len(sizes) - 1
+    return {
+        f"dense{i}": _dense_init(keys[i], sizes[i], sizes[i + 1], selu=(i < n - 1) or final_selu)
+        for i in range(n)
+    }
+
+
+def mlp(params: Params, x: jax.Array, final_selu: bool) -> jax.Array:
+    n = len(params)
+    for i in range(n):
+        x = dense(params[f"dense{i}"], x)
+        if i < n - 1 or final_selu:
+            x = jax.nn.selu(x)
+    return x
+
+
+# --------------------------------------------------------------------------- convolutions
+
+
+def init_obs_encoder(key, arch: ArchConfig) -> Params:
+    keys = jax.random.split(key, len(arch.encoder))
+    params, in_ch = {}, 1
+    for i, spec in enumerate(arch.encoder):
+        shape = (spec.kernel, spec.kernel, in_ch, spec.features)
+        params[f"conv{i}"] = {
+            "kernel": _lecun(keys[i], shape, jnp.float32),
+            "bias": jnp.zeros((spec.features,), jnp.float32),
+        }
+        in_ch = spec.features
+    return params
+
+
+def obs_encoder(params: Params, arch: ArchConfig, frames: jax.Array) -> jax.Array:
+    """E_o: frames `[B, H, W]` in [0, 1] -> codes `[B, obs_code]` (SELU after every layer)."""
+    x = frames[..., None]
+    for i, spec in enumerate(arch.encoder):
+        layer = params[f"conv{i}"]
+        x = jax.lax.conv_general_dilated(
+            x,
+            layer["kernel"],
+            window_strides=(spec.stride, spec.stride),
+            padding=[(spec.padding, spec.padding)] * 2,
+            dimension_numbers=_DIMS,
+        )
+        x = jax.nn.selu(x + layer["bias"])
+    return x.reshape(x.shape[0], -1)
+
+
+def _decoder_layers(arch: ArchConfig):
+    """(spec, in_channels, out_channels) of each decoder layer, first layer first."""
+    chans = [1] + [s.features for s in arch.encoder]
+    specs = list(reversed(arch.encoder))
+    return [(spec, chans[-1 - i], chans[-2 - i]) for i, spec in enumerate(specs)]
+
+
+def init_obs_decoder(key, arch: ArchConfig) -> Params:
+    layers = _decoder_layers(arch)
+    keys = jax.random.split(key, len(layers))
+    params = {}
+    for i, (spec, c_in, c_out) in enumerate(layers):
+        init = _glorot if i == len(layers) - 1 else _lecun
+        params[f"deconv{i}"] = {
+            # [kh, kw, in, out]: kernel[y, x, i, o] is PyTorch's ConvTranspose2d weight[i, o, y, x].
+            "kernel": init(keys[i], (spec.kernel, spec.kernel, c_in, c_out), jnp.float32),
+            "bias": jnp.zeros((c_out,), jnp.float32),
+        }
+    return params
+
+
+def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """PyTorch `ConvTranspose2d` semantics on NHWC: out = (in - 1) * stride - 2 * padding + k.
+
+    Written as the gradient of a strided convolution: dilate the input by `stride`, pad by
+    `k - 1 - padding` and correlate with the spatially flipped kernel.
+    """
+    k = kernel.shape[0]
+    pad = k - 1 - padding
+    if pad < 0:
+        raise ValueError(f"transposed convolution needs padding <= kernel - 1, got {padding} for {k}")
+    return jax.lax.conv_general_dilated(
+        x,
+        kernel[::-1, ::-1],
+        window_strides=(1, 1),
+        padding=[(pad, pad)] * 2,
+        lhs_dilation=(stride, stride),
+        dimension_numbers=_DIMS,
+    )
+
+
+def obs_decoder_logits(params: Params, arch: ArchConfig, codes: jax.Array) -> jax.Array:
+    """D_o before its output sigmoid: codes `[B, obs_code]` -> logits `[B, H, W]`."""
+    layers = _decoder_layers(arch)
+    x = codes.reshape(codes.shape[0], 1, 1, codes.shape[-1])
+    for i, (spec, _, _) in enumerate(layers):
+        layer = params[f"deconv{i}"]
+        x = conv_transpose(x, layer["kernel"], spec.stride, spec.padding) + layer["bias"]
+        if i < len(layers) - 1:
+            x = jax.nn.selu(x)
+    return x[..., 0]
+
+
+# --------------------------------------------------------------------------- LSTM
+
+
+class LSTMState(NamedTuple):
+    """The recurrent state: output `h` and error carousel `c`, each `[B, lstm_size]`."""
+
+    h: jax.Array
+    c: jax.Array
+
+
+def init_lstm(key, n_in: int, n_hidden: int) -> Params:
+    """Gate order along the last axis: forget, input, output, update (thesis eq. 3.4)."""
+    k1, k2 = jax.random.split(key)
+    return {
+        "w_input": _glorot(k1, (n_in, 4 * n_hidden), jnp.float32),
+        "w_recurrent": _glorot(k2, (n_hidden, 4 * n_hidden), jnp.float32),
+        "bias": jnp.zeros((4 * n_hidden,), jnp.float32),
+    }
+
+
+def lstm_zeros(batch: int, n_hidden: int) -> LSTMState:
+    return LSTMState(jnp.zeros((batch, n_hidden), jnp.float32), jnp.zeros((batch, n_hidden), jnp.float32))
+
+
+def lstm_input_projection(params: Params, x: jax.Array) -> jax.Array:
+    """The input part of all four gates' pre-activations (hoistable out of a scan)."""
+    return x @ params["w_input"] + params["bias"]
+
+
+def lstm_cell(params: Params, state: LSTMState, x: jax.Array) -> LSTMState:
+    """One LSTM step (thesis eq. 3.4) on inputs `x` `[B, n_in]`."""
+    return lstm_cell_projected(params, state, lstm_input_projection(params, x))
+
+
+def lstm_cell_projected(params: Params, state: LSTMState, x_proj: jax.Array) -> LSTMState:
+    """One LSTM step given the already-projected input `x @ w_input + bias`."""
+    z = x_proj + state.h @ params["w_recurrent"]
+    f, i, o, u = jnp.split(z, 4, axis=-1)
+    c = jax.nn.sigmoid(f) * state.c + jax.nn.sigmoid(i) * jnp.tanh(u)
+    h = jax.nn.sigmoid(o) * jnp.tanh(c)
+    return LSTMState(h, c)

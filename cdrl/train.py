@@ -1,0 +1,165 @@
+"""Truncated back-propagation through time: one pure, jitted train step.
+
+`train_step(variant, state, hparams, chunk) -> (state, metrics)` unrolls the variant over
+one T-step chunk of B streams, averages the weighted loss terms, applies SGD with momentum,
+and reports the per-group norm ratios of the divergence monitor. The carry at the end of
+the chunk becomes the next chunk's initial carry, behind a stop-gradient (the TBPTT cut);
+episode starts inside a chunk reset the carry of their stream only.
+
+A step whose loss, gradients or parameters are not finite, or whose largest norm ratio
+exceeds `hparams.diverge_threshold`, is marked `diverged` and leaves the state unchanged,
+so the host keeps the last good parameters.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from cdrl.monitor import NormRatioState, group_names, norm_ratio_monitor
+from cdrl.variants import StepInput, Variant
+
+
+@flax.struct.dataclass
+class HParams:
+    """Traced hyper-parameters: one compiled program serves any values (and a `vmap` sweep)."""
+
+    lr: jax.Array
+    momentum: jax.Array
+    loss_weights: dict[str, jax.Array]
+    diverge_threshold: jax.Array
+
+    @classmethod
+    def create(
+        cls,
+        variant: Variant,
+        lr: float = 0.1,
+        momentum: float = 0.9,
+        loss_weights: dict[str, float] | None = None,
+        diverge_threshold: float = 1e3,
+    ) -> "HParams":
+        weights = dict(variant.default_loss_weights())
+        for key, value in (loss_weights or {}).items():
+            if key not in weights:
+                raise ValueError(
+                    f"unknown loss term {key!r} for variant {variant.name!r}; "
+                    f"its terms are {sorted(weights)}"
+                )
+            weights[key] = value
+        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        return cls(f32(lr), f32(momentum), {k: f32(v) for k, v in weights.items()}, f32(diverge_threshold))
+
+
+@flax.struct.dataclass
+class Chunk:
+    """T time steps of B streams, time-major. Frames are uint8 (0..255) or float in [0, 1]."""
+
+    obs: jax.Array  # [T, B, H, W]
+    next_obs: jax.Array  # [T, B, H, W]: the frame to predict, o_{t+1}
+    action: jax.Array  # [T, B, A]: a_t
+    reward: jax.Array  # [T, B]: r_{t+1}, received on arriving at o_{t+1}
+    is_first: jax.Array  # [T, B] bool
+
+
+@flax.struct.dataclass
+class TrainState:
+    params: Any
+    opt_state: Any
+    carry: Any  # the recurrent state of every stream, carried across chunks
+    step: jax.Array
+
+
+def make_optimizer(hp: HParams) -> optax.GradientTransformation:
+    """Monitor first (raw gradients), then SGD: mu <- beta mu + g; w <- w - lr mu."""
+    return optax.chain(norm_ratio_monitor(), optax.sgd(hp.lr, momentum=hp.momentum))
+
+
+def init_state(variant: Variant, key: jax.Array, batch: int, hp: HParams | None = None) -> TrainState:
+    params = variant.init(key)
+    hp = hp if hp is not None else HParams.create(variant)
+    return TrainState(
+        params=params,
+        opt_state=make_optimizer(hp).init(params),
+        carry=variant.init_carry(batch),
+        step=jnp.zeros((), jnp.int32),
+    )
+
+
+def as_float(frames: jax.Array) -> jax.Array:
+    """uint8 frames to [0, 1]; float frames unchanged."""
+    if frames.dtype == jnp.uint8:
+        return frames.astype(jnp.float32) / 255.0
+    return frames.astype(jnp.float32)
+
+
+def step_inputs(chunk: Chunk) -> StepInput:
+    return StepInput(obs=as_float(chunk.obs), action=chunk.action.astype(jnp.float32), is_first=chunk.is_first)
+
+
+def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
+    """Weighted loss of one chunk from `carry`, which is cut from the graph (TBPTT).
+
+    Returns `(loss, (final_carry, terms, outputs))`.
+    """
+    carry = jax.lax.stop_gradient(carry)
+    xs = step_inputs(chunk)
+    carry, outs = variant.unroll(params, carry, xs)
+    terms = variant.loss_terms(params, xs, outs, as_float(chunk.next_obs))
+    missing = set(terms) ^ set(hp.loss_weights)
+    if missing:
+        raise ValueError(f"loss weights and terms differ for {variant.name!r}: {sorted(missing)}")
+    loss = sum(hp.loss_weights[k] * terms[k] for k in sorted(terms))
+    return loss, (carry, terms, outs)
+
+
+def _all_finite(tree) -> jax.Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk):
+    """The un-jitted train step (for `vmap`/`scan` compositions); see `train_step`."""
+    grad_fn = jax.value_and_grad(functools.partial(chunk_loss, variant), has_aux=True)
+    (loss, (carry, terms, _)), grads = grad_fn(state.params, state.carry, hp, chunk)
+    updates, opt_state = make_optimizer(hp).update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+
+    monitor: NormRatioState = opt_state[0]
+    ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
+    safe = jnp.where(jnp.isfinite(ratios), ratios, jnp.inf)
+    finite = jnp.isfinite(loss) & _all_finite(grads) & _all_finite(params)
+    max_ratio = jnp.max(safe)
+    diverged = ~finite | (max_ratio > hp.diverge_threshold)
+
+    new = TrainState(params=params, opt_state=opt_state, carry=carry, step=state.step + 1)
+    state = jax.tree.map(lambda n, o: jnp.where(diverged, o, n), new, state)
+    metrics = {
+        "loss": loss,
+        "terms": terms,
+        "ratios": ratios,
+        "max_ratio": max_ratio,
+        "worst_group": jnp.argmax(safe),
+        "finite": finite,
+        "diverged": diverged,
+    }
+    return state, metrics
+
+
+train_step = jax.jit(train_step_fn, static_argnums=0, donate_argnums=1)
+
+
+def ratio_names(state: TrainState) -> list[str]:
+    """Names of the entries of `metrics['ratios']`, in order."""
+    return group_names(state.params)
+
+
+def eval_chunk_fn(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
+    """Loss terms of one chunk without an update: `(carry, terms, outputs)`."""
+    _, (carry, terms, outs) = chunk_loss(variant, params, carry, hp, chunk)
+    return carry, terms, outs
+
+
+eval_chunk = jax.jit(eval_chunk_fn, static_argnums=0)

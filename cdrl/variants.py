@@ -1,0 +1,346 @@
+"""The model variants of the thesis, each a pure step function scanned over time.
+
+A variant is a frozen (hashable) object holding only the static `ArchConfig`; it is passed
+to `jit` as a static argument. Its contract:
+
+- `init(key) -> params`, `init_carry(batch) -> carry`;
+- `step(params, carry, x_t) -> (carry, out_t)` with `x_t` a `StepInput` of one time step;
+  episode resets are a mask inside the step (`x_t.is_first` selects the initial carry);
+- `unroll(params, carry, xs) -> (carry, outs)` over time-major `[T, B, ...]` inputs: by
+  default one `jax.lax.scan` of `step`; open-loop variants fuse it (encoder and decoder run
+  over all T frames at once, only the recurrent core is scanned) and tests pin the fused
+  path against the scan;
+- `loss_terms(params, xs, outs, next_obs) -> dict` of scalar terms, combined with a matching
+  dict of weights (`default_loss_weights`), so that metrics-only terms carry weight 0.
+
+Names in `VARIANTS`: baseline_ff, baseline_recurrent, main, main_action, residual,
+residual_error, closed_loop_plus, closed_loop_minus (SPEC section 4).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from cdrl import nets
+from cdrl.config import ArchConfig
+
+Carry = Any
+Outputs = dict
+
+
+@flax.struct.dataclass
+class StepInput:
+    """What the model sees at time t (each `[B, ...]`, or `[T, B, ...]` for an unroll)."""
+
+    obs: jax.Array  # [B, H, W] float in [0, 1]
+    action: jax.Array  # [B, action_dim] in [0, 1]; a_t, taken after seeing o_t
+    is_first: jax.Array  # [B] bool: o_t starts a new episode, so the carry resets
+
+
+def reset_where(is_first: jax.Array, initial: Carry, carry: Carry) -> Carry:
+    """Per batch element, the initial carry where `is_first`, else the carried one."""
+
+    def pick(init, cur):
+        mask = is_first.reshape(is_first.shape + (1,) * (cur.ndim - 1))
+        return jnp.where(mask, init, cur)
+
+    return jax.tree.map(pick, initial, carry)
+
+
+def bce_with_logits(logits: jax.Array, target: jax.Array) -> jax.Array:
+    """Binary cross-entropy of sigmoid(logits) against `target` in [0, 1], averaged."""
+    return jnp.mean(jax.nn.softplus(logits) - target * logits)
+
+
+def _flat(fn, x: jax.Array, n_trailing: int) -> jax.Array:
+    """Apply a `[N, ...] -> [N, ...]` network to an array with any leading dims."""
+    lead = x.shape[: x.ndim - n_trailing]
+    y = fn(x.reshape((-1,) + x.shape[x.ndim - n_trailing:]))
+    return y.reshape(lead + y.shape[1:])
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """Base class: see the module docstring for the contract."""
+
+    arch: ArchConfig
+    name: ClassVar[str] = ""
+    uses_action: ClassVar[bool] = False
+    # Variants whose predicted code lives in the input code's space (thesis figure 5.6).
+    shared_code_space: ClassVar[bool] = False
+
+    # ---- parameters and carries
+    def init(self, key: jax.Array) -> dict:
+        raise NotImplementedError
+
+    def init_carry(self, batch: int) -> Carry:
+        raise NotImplementedError
+
+    def core_in_size(self) -> int:
+        return self.arch.obs_code + (self.arch.action_code if self.uses_action else 0)
+
+    def _init_common(self, key: jax.Array, recurrent: bool = True) -> dict:
+        a = self.arch
+        k = jax.random.split(key, 5)
+        params = {
+            "obs_enc": nets.init_obs_encoder(k[0], a),
+            "obs_dec": nets.init_obs_decoder(k[1], a),
+        }
+        hidden = a.lstm_size if recurrent else self.core_in_size()
+        if recurrent:
+            params["lstm"] = nets.init_lstm(k[2], self.core_in_size(), a.lstm_size)
+        params["fc"] = nets.init_mlp(k[3], (hidden, a.obs_code), final_selu=True)
+        if self.uses_action:
+            params["act_enc"] = nets.init_mlp(
+                k[4], (a.action_dim, *a.action_hidden, a.action_code), final_selu=True
+            )
+        return params
+
+    # ---- time
+    def step(self, params: dict, carry: Carry, x: StepInput) -> tuple[Carry, Outputs]:
+        raise NotImplementedError
+
+    def unroll(self, params: dict, carry: Carry, xs: StepInput) -> tuple[Carry, Outputs]:
+        return jax.lax.scan(lambda c, x: self.step(params, c, x), carry, xs)
+
+    # ---- losses
+    def default_loss_weights(self) -> dict[str, float]:
+        weights = {"obs_bce": 1.0}
+        if self.shared_code_space:
+            weights["code_pred_mse"] = 0.0
+        return weights
+
+    def loss_terms(self, params: dict, xs: StepInput, outs: Outputs, next_obs: jax.Array) -> dict:
+        terms = {"obs_bce": bce_with_logits(outs["logits"], next_obs)}
+        if self.shared_code_space:
+            terms["code_pred_mse"] = code_prediction_error(outs, xs.is_first)
+        return terms
+
+    # ---- shared pieces
+    def encode(self, params: dict, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """Input code k_t for frames `[..., H, W]` (and actions `[..., A]`)."""
+        k = _flat(lambda o: nets.obs_encoder(params["obs_enc"], self.arch, o), obs, 2)
+        if self.uses_action:
+            ka = nets.mlp(params["act_enc"], action, final_selu=True)
+            k = jnp.concatenate([k, ka], axis=-1)
+        return k
+
+    def decode(self, params: dict, code: jax.Array) -> jax.Array:
+        """Logits of the predicted frame for codes `[..., obs_code]`."""
+        return _flat(lambda d: nets.obs_decoder_logits(params["obs_dec"], self.arch, d), code, 1)
+
+    def fc(self, params: dict, h: jax.Array) -> jax.Array:
+        return nets.mlp(params["fc"], h, final_selu=True)
+
+
+def code_prediction_error(outs: Outputs, is_first: jax.Array) -> jax.Array:
+    """MSE(d_{t+1}, k_{t+1}) over the pairs inside the chunk that do not cross an episode start."""
+    pred, code = outs["pred_code"][:-1], outs["code"][1:, ..., : outs["pred_code"].shape[-1]]
+    valid = (~is_first[1:]).astype(pred.dtype)[..., None]
+    err = jnp.square(pred - code) * valid
+    return jnp.sum(err) / jnp.maximum(jnp.sum(valid) * pred.shape[-1], 1.0)
+
+
+class OpenLoop(Variant):
+    """Variants whose input does not depend on their own predictions.
+
+    `step` is encode -> recur -> decode; `unroll` runs the encoder and decoder over all T
+    frames at once and scans only `recur`, the recurrent core.
+    """
+
+    def recur(self, params: dict, carry: Carry, k: jax.Array, is_first: jax.Array):
+        raise NotImplementedError
+
+    def step(self, params, carry, x):
+        k = self.encode(params, x.obs, x.action)
+        carry, d = self.recur(params, carry, k, x.is_first)
+        return carry, self._outputs(params, k, d)
+
+    def unroll(self, params, carry, xs):
+        ks = self.encode(params, xs.obs, xs.action)
+        carry, ds = jax.lax.scan(
+            lambda c, kx: self.recur(params, c, kx[0], kx[1]), carry, (ks, xs.is_first)
+        )
+        return carry, self._outputs(params, ks, ds)
+
+    def _outputs(self, params, k, d) -> Outputs:
+        return {"logits": self.decode(params, d), "code": k, "pred_code": d}
+
+
+class BaselineFF(OpenLoop):
+    """Figure 4.2: k_t = E_o(o_t); d = FC(k_t); prediction D_o(d). No recurrence."""
+
+    name = "baseline_ff"
+
+    def init(self, key):
+        return self._init_common(key, recurrent=False)
+
+    def init_carry(self, batch):
+        return ()
+
+    def recur(self, params, carry, k, is_first):
+        return carry, self.fc(params, k)
+
+
+class Main(OpenLoop):
+    """Figure 3.2: k_t = E_o(o_t); h_t = LSTM(k_t); d_{t+1} = FC(h_t); prediction D_o(d_{t+1})."""
+
+    name = "main"
+
+    def init(self, key):
+        return self._init_common(key)
+
+    def init_carry(self, batch):
+        return nets.lstm_zeros(batch, self.arch.lstm_size)
+
+    def recur(self, params, carry, k, is_first):
+        carry = reset_where(is_first, self.init_carry(k.shape[0]), carry)
+        carry = nets.lstm_cell(params["lstm"], carry, k)
+        return carry, self.fc(params, carry.h)
+
+
+class MainAction(Main):
+    """Figure 3.3: as main, with k_t = E_o(o_t) ++ E_a(a_t)."""
+
+    name = "main_action"
+    uses_action = True
+
+
+class Residual(Main):
+    """Figure 4.4: d_{t+1} = k_t + FC(LSTM(k_t))."""
+
+    name = "residual"
+    shared_code_space = True
+
+    def recur(self, params, carry, k, is_first):
+        carry, delta = super().recur(params, carry, k, is_first)
+        return carry, k + delta
+
+
+class ResidualError(Main):
+    """Figure 4.5: e_t = k_t - d_t (d_0 = 0); d_{t+1} = k_t + FC(LSTM(e_t))."""
+
+    name = "residual_error"
+    shared_code_space = True
+
+    def init_carry(self, batch):
+        return {"lstm": super().init_carry(batch), "pred_code": jnp.zeros((batch, self.arch.obs_code))}
+
+    def recur(self, params, carry, k, is_first):
+        carry = reset_where(is_first, self.init_carry(k.shape[0]), carry)
+        lstm = nets.lstm_cell(params["lstm"], carry["lstm"], k - carry["pred_code"])
+        d = k + self.fc(params, lstm.h)
+        return {"lstm": lstm, "pred_code": d}, d
+
+
+class BaselineRecurrent(Main):
+    """Figure 4.3, two stages sharing one program: an autoencoder D_o(E_o(o_t)) trained on
+    reconstruction ('recon_bce'), and an LSTM+FC trained on the frozen codes with MSE
+    ('code_mse'). The stages are loss-weight settings (`stage_loss_weights`); 'obs_bce',
+    BCE(D_o(d_{t+1}), o_{t+1}), is the comparable evaluation metric (weight 0)."""
+
+    name = "baseline_recurrent"
+    shared_code_space = True
+
+    def recur(self, params, carry, k, is_first):
+        return super().recur(params, carry, jax.lax.stop_gradient(k), is_first)
+
+    def _outputs(self, params, k, d):
+        out = super()._outputs(params, k, d)
+        out["recon_logits"] = self.decode(params, k)
+        return out
+
+    def default_loss_weights(self):
+        return self.stage_loss_weights()[0]
+
+    def stage_loss_weights(self) -> tuple[dict[str, float], ...]:
+        """Stage 1 trains the autoencoder, stage 2 the LSTM+FC on its frozen codes."""
+        base = {"obs_bce": 0.0, "code_pred_mse": 0.0}
+        return (
+            {**base, "recon_bce": 1.0, "code_mse": 0.0},
+            {**base, "recon_bce": 0.0, "code_mse": 1.0},
+        )
+
+    def loss_terms(self, params, xs, outs, next_obs):
+        terms = super().loss_terms(params, xs, outs, next_obs)
+        terms["recon_bce"] = bce_with_logits(outs["recon_logits"], xs.obs)
+        target = jax.lax.stop_gradient(self.encode(params, next_obs, None))
+        terms["code_mse"] = jnp.mean(jnp.square(outs["pred_code"] - target))
+        return terms
+
+
+class ClosedLoop(Variant):
+    """Figures 4.6 / 4.7: the input is o_t + sign * õ_t (õ_0 = 0), then the main model.
+
+    The fed-back prediction õ_t keeps its gradient (no stop-gradient): errors flow back
+    through it into the previous step's decoder, core and encoder.
+    """
+
+    sign: ClassVar[float] = 1.0
+
+    def init(self, key):
+        return self._init_common(key)
+
+    def init_carry(self, batch):
+        size = self.arch.image_size
+        return {
+            "lstm": nets.lstm_zeros(batch, self.arch.lstm_size),
+            "pred_obs": jnp.zeros((batch, size, size), jnp.float32),
+        }
+
+    def step(self, params, carry, x):
+        carry = reset_where(x.is_first, self.init_carry(x.obs.shape[0]), carry)
+        k = self.encode(params, x.obs + self.sign * carry["pred_obs"], x.action)
+        lstm = nets.lstm_cell(params["lstm"], carry["lstm"], k)
+        d = self.fc(params, lstm.h)
+        logits = self.decode(params, d)
+        carry = {"lstm": lstm, "pred_obs": jax.nn.sigmoid(logits)}
+        return carry, {"logits": logits, "code": k, "pred_code": d}
+
+
+class ClosedLoopPlus(ClosedLoop):
+    name = "closed_loop_plus"
+    sign = 1.0
+
+
+class ClosedLoopMinus(ClosedLoop):
+    name = "closed_loop_minus"
+    sign = -1.0
+
+
+VARIANTS: dict[str, type[Variant]] = {
+    cls.name: cls
+    for cls in (
+        BaselineFF,
+        BaselineRecurrent,
+        Main,
+        MainAction,
+        Residual,
+        ResidualError,
+        ClosedLoopPlus,
+        ClosedLoopMinus,
+    )
+}
+
+
+def register(cls: type[Variant]) -> type[Variant]:
+    """Add a variant class to the registry under its `name` (usable as a decorator)."""
+    if not cls.name:
+        raise ValueError(f"{cls.__name__} needs a non-empty `name`")
+    if cls.name in VARIANTS and VARIANTS[cls.name] is not cls:
+        raise ValueError(f"a variant named {cls.name!r} is already registered")
+    VARIANTS[cls.name] = cls
+    return cls
+
+
+def make_variant(name: str, arch: ArchConfig) -> Variant:
+    """The variant called `name` for architecture `arch`."""
+    try:
+        cls = VARIANTS[name]
+    except KeyError:
+        raise ValueError(f"unknown variant {name!r}; choose one of {sorted(VARIANTS)}") from None
+    return cls(arch)
