@@ -1,0 +1,84 @@
+"""Checkpoints of a training run with orbax: the whole `TrainState` (parameters, optimiser
+state, every stream's carry, step) plus JSON metadata (the run config, the data cursor, the
+PRNG key). Orbax writes each checkpoint to a temporary directory and renames it when
+complete, so an interrupted save never replaces a good checkpoint; the last k are kept.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+from cdrl.train import TrainState
+
+logging.getLogger("absl").setLevel(logging.WARNING)
+
+
+class CheckpointError(RuntimeError):
+    """No usable checkpoint, or one from an incompatible configuration."""
+
+
+class Checkpoints:
+    """Save and restore `TrainState`s and their metadata under `directory`."""
+
+    def __init__(self, directory: str | Path, keep: int = 3):
+        self.directory = Path(directory).absolute()
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
+        self.manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def steps(self) -> list[int]:
+        return sorted(self.manager.all_steps())
+
+    def save(self, step: int, state: TrainState, meta: dict[str, Any]) -> None:
+        """Save `state` as checkpoint `step`, replacing a stale one of the same step (left by a
+        corrupt checkpoint that a resumed run has reached again)."""
+        if step in self.manager.all_steps():
+            self.manager.delete(step)
+        self.manager.save(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+            force=True,
+        )
+        self.manager.wait_until_finished()
+
+    def read_meta(self, step: int) -> dict[str, Any]:
+        restored = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        return restored["meta"]
+
+    def restore(self, step: int, like: TrainState) -> tuple[TrainState, dict[str, Any]]:
+        """The state saved at `step`, shaped like `like` (an abstract or concrete state)."""
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+        restored = self.manager.restore(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()),
+        )
+        return restored["state"], restored["meta"]
+
+    def restore_latest_good(self, like: TrainState, check_meta=None) -> tuple[TrainState, dict[str, Any], list[str]]:
+        """The newest checkpoint that restores cleanly; older ones are tried when a newer one is
+        corrupt. `check_meta(meta)` may raise `CheckpointError` for an incompatible config
+        (that is not skipped: it is an error). Returns (state, meta, warnings)."""
+        steps = self.steps()
+        if not steps:
+            raise CheckpointError(f"no checkpoint found in {self.directory}")
+        warnings = []
+        for step in reversed(steps):
+            try:
+                meta = self.read_meta(step)
+            except Exception as exc:  # noqa: BLE001 - any read failure means this one is unusable
+                warnings.append(f"checkpoint {self.directory / str(step)} is unreadable ({type(exc).__name__}: {exc})")
+                continue
+            if check_meta is not None:
+                check_meta(meta)
+            try:
+                state, meta = self.restore(step, like)
+            except Exception as exc:  # noqa: BLE001
+                warnings.append(f"checkpoint {self.directory / str(step)} is corrupt ({type(exc).__name__}: {exc})")
+                continue
+            return state, meta, warnings
+        raise CheckpointError(
+            f"every checkpoint in {self.directory} is corrupt or unreadable:\n  " + "\n  ".join(warnings)
+        )

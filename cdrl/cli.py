@@ -1,0 +1,134 @@
+"""The `cdrl` command line: collect, train, eval, plot, variants.
+
+Every `train` option is a field of `cdrl.run.RunConfig`; its help text and default come
+from there, so the CLI and the Python API cannot drift apart.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from cdrl.run import RunConfig
+
+
+def _add_config_options(parser: argparse.ArgumentParser) -> None:
+    """One option per `RunConfig` field. Options not given stay absent from the namespace, so
+    a resumed run changes only what the command line names."""
+    for f in dataclasses.fields(RunConfig):
+        parser.add_argument(
+            "--" + f.name.replace("_", "-"),
+            type=type(f.default),
+            default=argparse.SUPPRESS,
+            help=f"{f.metadata['help']} (default: {f.default})",
+        )
+
+
+def _cmd_train(args) -> int:
+    from cdrl.run import train_run
+
+    options = {f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig) if hasattr(args, f.name)}
+    try:
+        if args.resume:
+            summary = train_run(None, args.resume, resume=True, overrides=options)
+        else:
+            summary = train_run(RunConfig(**options), args.run_dir)
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
+        print(f"cdrl train: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary))
+    return 0
+
+
+def _cmd_eval(args) -> int:
+    from cdrl.report import eval_runs
+
+    try:
+        rows = eval_runs([Path(p) for p in args.run_dirs], episodes=args.episodes)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"cdrl eval: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(rows))
+    return 0
+
+
+def _cmd_plot(args) -> int:
+    from cdrl.plots import plot_runs
+
+    try:
+        written = plot_runs([Path(p) for p in args.run_dirs], out_dir=Path(args.out) if args.out else None)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"cdrl plot: {exc}", file=sys.stderr)
+        return 2
+    for path in written:
+        print(path)
+    return 0
+
+
+def _cmd_collect(args) -> int:
+    from cdrl import dataset
+
+    try:
+        dataset.collect(Path(args.out), args.episodes, policy=args.policy, seed=args.seed,
+                        max_steps=args.episode_steps, obs_size=args.obs_size)
+    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+        print(f"cdrl collect: {exc}", file=sys.stderr)
+        return 2
+    print(args.out)
+    return 0
+
+
+def _cmd_variants(args) -> int:
+    from cdrl.variants import VARIANTS
+
+    for name, cls in sorted(VARIANTS.items()):
+        print(f"{name:20s} {(cls.__doc__ or '').strip().splitlines()[0] if cls.__doc__ else ''}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="cdrl", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    train = sub.add_parser("train", help="train a model variant (the main job)")
+    train.add_argument("--run-dir", default="runs/run", help="directory of the run's outputs (default: runs/run)")
+    train.add_argument("--resume", metavar="RUN_DIR", default=None,
+                       help="continue the run in RUN_DIR from its last good checkpoint (default: none)")
+    _add_config_options(train)
+    train.set_defaults(func=_cmd_train)
+
+    ev = sub.add_parser("eval", help="evaluate trained runs on their held-out episodes and print a table")
+    ev.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    ev.add_argument("--episodes", type=int, default=None, help="held-out episodes to use (default: the run's eval_episodes)")
+    ev.set_defaults(func=_cmd_eval)
+
+    plot = sub.add_parser("plot", help="write the thesis's figures of one or more runs as PNG files")
+    plot.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
+    plot.add_argument("--out", default=None, help="output directory (default: RUN_DIR/plots of the first run)")
+    plot.set_defaults(func=_cmd_plot)
+
+    col = sub.add_parser("collect", help="record episodes of the built-in game to a data set directory")
+    col.add_argument("out", metavar="OUT_DIR")
+    col.add_argument("--episodes", type=int, default=100, help="number of episodes (default: 100)")
+    col.add_argument("--policy", choices=["behaviour", "uniform"], default="behaviour",
+                     help="behaviour switching (observation data) or uniform random (action data) (default: behaviour)")
+    col.add_argument("--seed", type=int, default=0, help="seed of the games and the policy (default: 0)")
+    col.add_argument("--episode-steps", type=int, default=500, help="step limit of an episode (default: 500)")
+    col.add_argument("--obs-size", type=int, default=150, help="side of the square observation (default: 150)")
+    col.set_defaults(func=_cmd_collect)
+
+    var = sub.add_parser("variants", help="list the model variants")
+    var.set_defaults(func=_cmd_variants)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,109 @@
+"""Runs a researcher can trust: exact resume after SIGKILL, corrupt and incompatible
+checkpoints, the metrics file, the CLI."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cdrl.cli import main as cli_main
+
+SMALL_RUN = ["--data", "synthetic", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30",
+             "--unroll", "8", "--batch", "2", "--lr", "0.3", "--eval-every", "0", "--eval-episodes", "1"]
+
+
+def _cli(*args):
+    return [sys.executable, "-m", "cdrl.cli", *args]
+
+
+def _losses(run_dir: Path) -> list[float]:
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    records = [json.loads(line) for line in lines]
+    assert [r["step"] for r in records] == list(range(len(records)))
+    return [r["loss"] for r in records]
+
+
+def test_sigkill_and_resume_give_the_same_losses(tmp_path):
+    straight = tmp_path / "straight"
+    assert cli_main(["train", "--run-dir", str(straight), *SMALL_RUN, "--steps", "60", "--checkpoint-every", "10"]) == 0
+
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen(_cli("train", "--run-dir", str(killed), *SMALL_RUN, "--steps", "100000",
+                                 "--checkpoint-every", "10"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    ckpt = killed / "checkpoints"
+    while time.time() < deadline:
+        if ckpt.exists() and len([p for p in ckpt.iterdir() if p.name.isdigit()]) >= 2:
+            break
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (killed / "config.json").exists()
+
+    result = subprocess.run(_cli("train", "--resume", str(killed), "--steps", "60"), capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    a, b = _losses(straight), _losses(killed)
+    assert len(a) == len(b) == 60
+    assert max(abs(x - y) for x, y in zip(a, b)) <= 1e-6
+
+
+def test_corrupt_checkpoint_falls_back_to_an_older_one(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--steps", "20", "--checkpoint-every", "10"]) == 0
+    newest = run / "checkpoints" / "20"
+    for path in newest.rglob("*"):
+        if path.is_file():
+            path.write_bytes(b"garbage")
+    capsys.readouterr()
+    assert cli_main(["train", "--resume", str(run), "--steps", "30"]) == 0
+    err = capsys.readouterr().err
+    assert "checkpoints/20" in err and "older checkpoint" in err
+    assert len(_losses(run)) == 30
+
+
+def test_incompatible_config_is_refused_and_loses_nothing(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--steps", "10", "--checkpoint-every", "10"]) == 0
+    before = (run / "config.json").read_text()
+    capsys.readouterr()
+    assert cli_main(["train", "--resume", str(run), "--lr", "0.01", "--steps", "20"]) == 2
+    err = capsys.readouterr().err
+    assert "incompatible config" in err and "lr: checkpoint has 0.3, run has 0.01" in err
+    assert (run / "config.json").read_text() == before
+    assert (run / "checkpoints" / "10").exists()
+
+
+def test_metrics_file_parses_and_loss_falls(tmp_path):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--steps", "60", "--checkpoint-every", "30"]) == 0
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    losses = [r["loss"] for r in records]
+    assert sum(losses[-10:]) / 10 < 0.8 * sum(losses[:5]) / 5
+    assert set(records[0]["ratios"]) >= {"obs_enc/conv0/kernel", "lstm/w_recurrent", "fc/dense0/bias"}
+    assert all(r["fps"] > 0 for r in records)
+    config = json.loads((run / "config.json").read_text())
+    assert config["lr"] == 0.3 and config["variant"] == "main"
+    evals = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines()]
+    assert evals[-1]["step"] == 60 and evals[-1]["bce"] > 0 and evals[-1]["copy_bce"] > 0
+
+
+def test_cli_rejects_bad_options(tmp_path, capsys):
+    assert cli_main(["train", "--run-dir", str(tmp_path / "a"), "--variant", "nope"]) == 2
+    assert "unknown variant 'nope'" in capsys.readouterr().err
+    assert cli_main(["train", "--run-dir", str(tmp_path / "b"), "--unroll", "0"]) == 2
+    assert "unroll must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main(["train", "--lr", "fast"])
+
+
+def test_divergence_in_a_run_is_reported_by_group(tmp_path, capsys):
+    run = tmp_path / "run"
+    code = cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--lr", "1000", "--steps", "50",
+                     "--diverge-threshold", "100"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "diverged at step" in err and "worst parameter group" in err and "Last good state saved" in err
