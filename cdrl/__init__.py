@@ -1,0 +1,1 @@
+from cdrl import controller, variants  # noqa: F401  (registers every variant)

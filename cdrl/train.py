@@ -108,7 +108,7 @@ def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
     carry = jax.lax.stop_gradient(carry)
     xs = step_inputs(chunk)
     carry, outs = variant.unroll(params, carry, xs)
-    terms = variant.loss_terms(params, xs, outs, as_float(chunk.next_obs))
+    terms = variant.loss_terms(params, xs, outs, as_float(chunk.next_obs), chunk.reward)
     missing = set(terms) ^ set(hp.loss_weights)
     if missing:
         raise ValueError(f"loss weights and terms differ for {variant.name!r}: {sorted(missing)}")

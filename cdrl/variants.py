@@ -10,7 +10,7 @@ to `jit` as a static argument. Its contract:
   default one `jax.lax.scan` of `step`; open-loop variants fuse it (encoder and decoder run
   over all T frames at once, only the recurrent core is scanned) and tests pin the fused
   path against the scan;
-- `loss_terms(params, xs, outs, next_obs) -> dict` of scalar terms, combined with a matching
+- `loss_terms(params, xs, outs, next_obs, next_reward) -> dict` of scalar terms, combined with a matching
   dict of weights (`default_loss_weights`), so that metrics-only terms carry weight 0.
 
 Names in `VARIANTS`: baseline_ff, baseline_recurrent, main, main_action, residual,
@@ -114,7 +114,9 @@ class Variant:
             weights["code_pred_mse"] = 0.0
         return weights
 
-    def loss_terms(self, params: dict, xs: StepInput, outs: Outputs, next_obs: jax.Array) -> dict:
+    def loss_terms(
+        self, params: dict, xs: StepInput, outs: Outputs, next_obs: jax.Array, next_reward: jax.Array
+    ) -> dict:
         terms = {"obs_bce": bce_with_logits(outs["logits"], next_obs)}
         if self.shared_code_space:
             terms["code_pred_mse"] = code_prediction_error(outs, xs.is_first)
@@ -135,6 +137,10 @@ class Variant:
 
     def fc(self, params: dict, h: jax.Array) -> jax.Array:
         return nets.mlp(params["fc"], h, final_selu=True)
+
+    def _outputs(self, params: dict, k: jax.Array, d: jax.Array) -> Outputs:
+        """Read out the core's output code `d` (input code `k` kept for the metrics)."""
+        return {"logits": self.decode(params, d), "code": k, "pred_code": d}
 
 
 def code_prediction_error(outs: Outputs, is_first: jax.Array) -> jax.Array:
@@ -166,9 +172,6 @@ class OpenLoop(Variant):
             lambda c, kx: self.recur(params, c, kx[0], kx[1]), carry, (ks, xs.is_first)
         )
         return carry, self._outputs(params, ks, ds)
-
-    def _outputs(self, params, k, d) -> Outputs:
-        return {"logits": self.decode(params, d), "code": k, "pred_code": d}
 
 
 class BaselineFF(OpenLoop):
@@ -265,8 +268,8 @@ class BaselineRecurrent(Main):
             {**base, "recon_bce": 0.0, "code_mse": 1.0},
         )
 
-    def loss_terms(self, params, xs, outs, next_obs):
-        terms = super().loss_terms(params, xs, outs, next_obs)
+    def loss_terms(self, params, xs, outs, next_obs, next_reward):
+        terms = super().loss_terms(params, xs, outs, next_obs, next_reward)
         terms["recon_bce"] = bce_with_logits(outs["recon_logits"], xs.obs)
         target = jax.lax.stop_gradient(self.encode(params, next_obs, None))
         terms["code_mse"] = jnp.mean(jnp.square(outs["pred_code"] - target))
@@ -296,10 +299,8 @@ class ClosedLoop(Variant):
         carry = reset_where(x.is_first, self.init_carry(x.obs.shape[0]), carry)
         k = self.encode(params, x.obs + self.sign * carry["pred_obs"], x.action)
         lstm = nets.lstm_cell(params["lstm"], carry["lstm"], k)
-        d = self.fc(params, lstm.h)
-        logits = self.decode(params, d)
-        carry = {"lstm": lstm, "pred_obs": jax.nn.sigmoid(logits)}
-        return carry, {"logits": logits, "code": k, "pred_code": d}
+        out = self._outputs(params, k, self.fc(params, lstm.h))
+        return {"lstm": lstm, "pred_obs": jax.nn.sigmoid(out["logits"])}, out
 
 
 class ClosedLoopPlus(ClosedLoop):

@@ -58,7 +58,7 @@ def _check_loss_grads(v, weights, frozen=()):
             carry = jax.tree.map(lambda c: c.astype(jnp.float64), v.init_carry(2))
             full = {**p, **fixed}
             _, outs = v.unroll(full, carry, xs)
-            terms = v.loss_terms(full, xs, outs, next_obs)
+            terms = v.loss_terms(full, xs, outs, next_obs, xs.action[..., 0])
             return sum(weights[k] * terms[k] for k in weights)
 
         check_grads(loss, (params,), order=1, modes=["rev"], eps=1e-6, atol=1e-5, rtol=1e-3)
@@ -133,7 +133,7 @@ def test_recurrent_baseline_stages_route_gradients_apart():
     def grads(term):
         def loss(p):
             _, outs = v.unroll(p, v.init_carry(2), xs)
-            return v.loss_terms(p, xs, outs, nxt)[term]
+            return v.loss_terms(p, xs, outs, nxt, xs.action[..., 0])[term]
         g = jax.grad(loss)(params)
         return {k: float(sum(jnp.sum(jnp.abs(x)) for x in jax.tree.leaves(g[k]))) for k in g}
 
