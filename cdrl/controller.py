@@ -28,6 +28,7 @@ class _Heads:
     """Mixin: split the FC output into observation / action / reward codes and decode them."""
 
     predicts_reward = False
+    has_controller = True
 
     def head_sizes(self) -> tuple[int, ...]:
         a = self.arch

@@ -51,13 +51,22 @@ class RunConfig:
     checkpoint_every: int = _opt(200, "steps between checkpoints")
     keep_checkpoints: int = _opt(3, "how many checkpoints to keep")
     eval_every: int = _opt(250, "steps between held-out evaluations (0: only at the end)")
-    eval_episodes: int = _opt(4, "held-out episodes per evaluation")
+    eval_episodes: int = _opt(4, "held-out episodes per evaluation (online variants: games per policy)")
+    env: str = _opt("", "game parameters for the built-in game, e.g. 'max_steps=300,left_bonus=1'")
+    scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
+    ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
+    reward_weight: float = _opt(1.0, "online variants: weight of the reward-prediction loss")
+    noise_std: float = _opt(0.3, "online variants: std of the exploration noise on the controller's actions")
+    noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration noise")
+    warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")
 
     def __post_init__(self):
         configs.preset(self.preset)
         for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.scope not in ("controller", "all"):
+            raise ValueError(f"scope must be 'controller' or 'all', got {self.scope!r}")
         if self.lr <= 0 or not 0 <= self.momentum < 1:
             raise ValueError(f"need lr > 0 and 0 <= momentum < 1, got lr={self.lr}, momentum={self.momentum}")
 
@@ -149,6 +158,10 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
     run_dir.mkdir(parents=True, exist_ok=True)
 
     variant = make_variant(cfg.variant, cfg.arch)
+    if variant.has_controller:
+        from cdrl.online_run import online_train_run
+
+        return online_train_run(cfg, variant, run_dir, resume, progress)
     train_eps, test_eps = load_episodes(cfg, run_dir.parent / "data-cache")
     stream = data_lib.ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size, seed=cfg.seed)
     hp = HParams.create(variant, cfg.lr, cfg.momentum, diverge_threshold=cfg.diverge_threshold)

@@ -116,7 +116,7 @@ def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
     return loss, (carry, terms, outs)
 
 
-def _all_finite(tree) -> jax.Array:
+def all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
 
 
@@ -130,7 +130,7 @@ def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk
     monitor: NormRatioState = opt_state[0]
     ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
     safe = jnp.where(jnp.isfinite(ratios), ratios, jnp.inf)
-    finite = jnp.isfinite(loss) & _all_finite(grads) & _all_finite(params)
+    finite = jnp.isfinite(loss) & all_finite(grads) & all_finite(params)
     max_ratio = jnp.max(safe)
     diverged = ~finite | (max_ratio > hp.diverge_threshold)
 

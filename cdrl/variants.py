@@ -72,6 +72,8 @@ class Variant:
     uses_action: ClassVar[bool] = False
     # Variants whose predicted code lives in the input code's space (thesis figure 5.6).
     shared_code_space: ClassVar[bool] = False
+    # Variants with a controller D_a; `cdrl train` trains them online against the game.
+    has_controller: ClassVar[bool] = False
 
     # ---- parameters and carries
     def init(self, key: jax.Array) -> dict:

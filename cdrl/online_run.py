@@ -1,0 +1,130 @@
+"""A training run of a controller variant against the built-in game (`cdrl train` dispatches
+here for action_loop, reward_prediction and final_proposal).
+
+The run directory has the layout of offline runs; `metrics.jsonl` lines add the real and
+predicted reward, the finished episodes' returns and the exploration noise. Checkpoints hold
+the whole `OnlineState` (games included), so a resumed run continues exactly.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from cdrl.checkpoint import Checkpoints
+from cdrl.loop import divergence_message
+from cdrl.monitor import group_names
+from cdrl.online import OnlineConfig, OnlineHParams, init_online, online_step
+from cdrl.play import controller_policy, format_table, play, summarize
+from cdrl.run import RunConfig, RunLog, _check_compatible, atomic_write_text
+from cdrl.variants import Variant
+
+
+def make_game(spec: str):
+    """The built-in game and its parameters, with `spec` ('name=value,...') overriding defaults."""
+    from envs.slither import Slither
+
+    game = Slither()
+    params = game.default_params
+    if spec:
+        names = {f.name for f in dataclasses.fields(params)}
+        changes = {}
+        for item in spec.split(","):
+            name, sep, value = item.partition("=")
+            name = name.strip()
+            if not sep or name not in names:
+                raise ValueError(f"bad game parameter {item!r}; use name=value with a name out of {sorted(names)}")
+            changes[name] = type(getattr(params, name))(float(value))
+        params = params.replace(**changes)
+    return game, params
+
+
+def hparams(cfg: RunConfig) -> OnlineHParams:
+    return OnlineHParams.create(lr=cfg.lr, momentum=cfg.momentum, ascent=cfg.ascent, reward_weight=cfg.reward_weight,
+                                noise_std=cfg.noise_std, noise_decay=cfg.noise_decay, warmup_steps=cfg.warmup_steps,
+                                diverge_threshold=cfg.diverge_threshold)
+
+
+def compare_policies(variant: Variant, params, game, env_params, episodes: int, max_steps: int,
+                     seed: int = 10_000) -> dict[str, dict]:
+    """The controller (no noise) against the thesis's two data policies, on the same seeds."""
+    from envs.policies import get_policy
+
+    seeds = np.arange(seed, seed + episodes)
+    rows = {"controller": summarize(*play(game, env_params, *controller_policy(variant, params), seeds, max_steps))}
+    for name in ("uniform", "behaviour"):
+        policy = get_policy(name)
+        rows[name] = summarize(*play(game, env_params, policy.init, policy.step, seeds, max_steps))
+    return rows
+
+
+def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bool,
+                     progress: bool | None = None) -> dict:
+    game, env_params = make_game(cfg.env)
+    env_params = env_params.replace(max_steps=cfg.episode_steps) if "max_steps" not in cfg.env else env_params
+    ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll, scope=cfg.scope)
+    hp = hparams(cfg)
+    state = init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)
+    ckpts = Checkpoints(run_dir / "checkpoints", keep=cfg.keep_checkpoints)
+    metrics_log, eval_log = RunLog(run_dir / "metrics.jsonl"), RunLog(run_dir / "eval.jsonl")
+    start = 0
+    if resume and ckpts.steps():
+        state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
+        for w in warnings:
+            print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+        start = int(meta["step"])
+    atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+    metrics_log.truncate(start)
+    eval_log.truncate(start + 1)
+    names = group_names(state.train.params)
+
+    def evaluate_policies(step):
+        rows = compare_policies(variant, state.train.params, game, env_params, cfg.eval_episodes, cfg.episode_steps)
+        eval_log.append([{"step": step, "split": "play", "policies": rows}])
+        return rows
+
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = tqdm(total=cfg.steps, initial=start, disable=not show, desc=f"online {cfg.variant}", unit="step")
+    pending, rows, t_last = [], None, time.perf_counter()
+    for step in range(start, cfg.steps):
+        state, m = online_step(variant, game, ocfg, state, hp, env_params)
+        m = jax.device_get(m)
+        now = time.perf_counter()
+        fps, t_last = cfg.batch * cfg.unroll / max(now - t_last, 1e-9), now
+        if m["diverged"]:
+            message, _, _ = divergence_message(step, m, names, cfg.diverge_threshold)
+            metrics_log.append(pending)
+            ckpts.save(step, state, {"step": step, "config": dataclasses.asdict(cfg)})
+            bar.close()
+            raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
+        episodes = int(m["episodes"])
+        pending.append({
+            "step": step, "loss": float(m["loss"]), "terms": {k: float(v) for k, v in m["terms"].items()},
+            "reward": float(m["reward"]), "episodes": episodes,
+            "mean_return": float(m["return_sum"]) / episodes if episodes else None,
+            "action_mean": np.asarray(m["action_mean"]).tolist(), "noise_std": float(m["noise_std"]),
+            "ascent_on": bool(m["ascent_on"]), "max_ratio": float(m["max_ratio"]),
+            "worst_group": names[int(m["worst_group"])],
+            "ratios": dict(zip(names, np.asarray(m["ratios"]).tolist())), "fps": fps,
+        })
+        bar.update(1)
+        bar.set_postfix(loss=f"{pending[-1]['loss']:.4f}", reward=f"{pending[-1]['reward']:.3f}")
+        done = step + 1
+        if cfg.eval_every and done % cfg.eval_every == 0 and done < cfg.steps:
+            rows = evaluate_policies(done)
+        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+            metrics_log.append(pending)
+            pending = []
+            ckpts.save(done, state, {"step": done, "config": dataclasses.asdict(cfg)})
+    metrics_log.append(pending)
+    bar.close()
+    if start < cfg.steps or rows is None:
+        rows = evaluate_policies(cfg.steps)
+    print(format_table(rows), file=sys.stderr)
+    return {"run_dir": str(run_dir), "steps": cfg.steps, "policies": rows}

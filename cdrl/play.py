@@ -1,0 +1,86 @@
+"""Playing whole episodes with a policy, many games at once, and the return table.
+
+A policy is `init(key) -> state` and `step(key, state, obs) -> (action, state)` for one
+game (the form of `envs.policies`); `play` runs N games in one `vmap` and a `lax.scan` of
+`max_steps`, and counts each game's return and length up to its first episode end.
+`controller_policy` wraps a trained controller variant in the same form, without
+exploration noise: it executes ã_t and feeds it back, as in training.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.stats
+
+from cdrl.online import resize_obs
+from cdrl.variants import StepInput, Variant
+
+
+def controller_policy(variant: Variant, params) -> tuple[Callable, Callable]:
+    """(init, step) of the trained controller as a noise-free policy for one game."""
+    size = variant.arch.image_size
+
+    def init(key):
+        del key
+        return {"carry": variant.init_carry(1), "action": jnp.zeros((1, variant.arch.action_dim)),
+                "is_first": jnp.ones((1,), bool)}
+
+    def step(key, state, obs):
+        del key
+        x = StepInput(obs=resize_obs(obs, size)[None], action=state["action"], is_first=state["is_first"])
+        carry, out = variant.step(params, state["carry"], x)
+        new = {"carry": carry, "action": out["action"], "is_first": jnp.zeros((1,), bool)}
+        return state["action"][0], new
+
+    return init, step
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 5))
+def _play(game, policy_init, policy_step, env_params, keys, max_steps: int):
+    def one_game(key):
+        k_reset, k_policy, k_run = jax.random.split(key, 3)
+        obs, env_state = game.reset(k_reset, env_params)
+
+        def body(c, _):
+            env_state, obs, pstate, key, ret, length, alive = c
+            key, k_act, k_env = jax.random.split(key, 3)
+            action, pstate = policy_step(k_act, pstate, obs)
+            obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, action, env_params)
+            ret = ret + jnp.where(alive, reward, 0.0)
+            length = length + alive.astype(jnp.int32)
+            alive = alive & ~(term | trunc)
+            return (env_state, obs, pstate, key, ret, length, alive), None
+
+        c0 = (env_state, obs, policy_init(k_policy), k_run, jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.array(True))
+        c, _ = jax.lax.scan(body, c0, None, length=max_steps)
+        return c[4], c[5]
+
+    return jax.vmap(one_game)(keys)
+
+
+def play(game, env_params, policy_init, policy_step, seeds: list[int] | np.ndarray, max_steps: int):
+    """Returns and lengths `[N]` of one episode per seed (at most `max_steps` steps each)."""
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+    returns, lengths = _play(game, policy_init, policy_step, env_params, keys, int(max_steps))
+    return np.asarray(returns), np.asarray(lengths)
+
+
+def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:
+    """Mean return with a 95 % confidence interval (Student t), mean episode length."""
+    n = len(returns)
+    mean = float(np.mean(returns))
+    half = float(scipy.stats.t.ppf(0.975, n - 1) * np.std(returns, ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
+    return {"mean_return": mean, "ci95": [mean - half, mean + half], "episodes": n,
+            "mean_length": float(np.mean(lengths))}
+
+
+def format_table(rows: dict[str, dict]) -> str:
+    lines = [f"{'policy':24s} {'mean return':>12s} {'95% CI':>22s} {'length':>8s} {'episodes':>9s}"]
+    for name, r in rows.items():
+        lo, hi = r["ci95"]
+        lines.append(f"{name:24s} {r['mean_return']:12.3f} [{lo:9.3f}, {hi:9.3f}] {r['mean_length']:8.1f} {r['episodes']:9d}")
+    return "\n".join(lines)
