@@ -1,0 +1,366 @@
+"""The thesis's figures (chapter 5) for one or more run directories, as PNG files.
+
+`plot_runs(run_dirs, out_dir)` writes, into `out_dir` (default `run_dirs[0]/plots`):
+
+- `loss.png`: training loss of every run, running average over 4096 samples (figs 5.1/5.3/5.7/5.8);
+- `ratios.png`: ||grad||/||param|| of chosen parameter groups, running average over 256 steps
+  (figs 5.4/5.5);
+- `code_error.png`: code-prediction error MSE(d_t, k_t) over training, for runs that log it (fig 5.6);
+- `prediction_<run>.png`: input frame, predicted next frame, true next frame, difference (fig 5.2);
+- `rollout_<run>.png`: an open-loop rollout fed with the model's own predictions;
+- `bce_bars.png`: train vs held-out BCE per run, with the copy-last-frame baseline (fig 5.9).
+
+Every figure has a fixed size in inches (the `*_SIZE` constants and functions) at `DPI`, so a
+figure's pixel size is known in advance. Files appear atomically (a temporary file in the same
+directory, then `os.replace`). Matplotlib's object API is used directly, without pyplot, so no
+global backend state is touched.
+"""
+from __future__ import annotations
+
+import functools
+import itertools
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from cdrl.checkpoint import CheckpointError
+from cdrl.report import Model, Run, evaluate_model, load_run, restore_model, run_episodes, running_mean, training_loss
+from cdrl.variants import StepInput, Variant
+
+DPI = 100
+LOSS_SIZE = (8.0, 5.0)
+CODE_ERROR_SIZE = (8.0, 5.0)
+PREDICTION_SIZE = (12.0, 3.6)
+# The thesis's monitored groups: encoder layer 4 kernel and decoder layer 3 kernel (0-based names).
+DEFAULT_RATIO_GROUPS = ("obs_enc/conv3/kernel", "obs_dec/deconv2/kernel")
+RATIO_WINDOW = 256
+
+
+def ratios_size(n_groups: int) -> tuple[float, float]:
+    return (5.0 * n_groups, 4.5)
+
+
+def rollout_size(horizon: int) -> tuple[float, float]:
+    return (1.0 + 1.5 * horizon, 3.6)
+
+
+def bars_size(n_runs: int) -> tuple[float, float]:
+    return (max(6.0, 2.0 + 1.8 * n_runs), 5.0)
+
+
+def save_figure(fig: Figure, path: Path) -> Path:
+    """Write `fig` as a PNG at `DPI` to `path` atomically: readers see the old file or the
+    complete new one, never a partial one."""
+    FigureCanvasAgg(fig)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            fig.savefig(f, format="png", dpi=DPI)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return path
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "run"
+
+
+def file_stems(runs: Sequence[Run]) -> list[str]:
+    """A distinct file-name-safe name per run (its directory name, numbered if repeated)."""
+    names = [_safe_name(r.name) for r in runs]
+    return [n if names.count(n) == 1 else f"{n}-{i}" for i, n in enumerate(names)]
+
+
+# ---------------------------------------------------------------- curves from the logs
+
+
+def _styles():
+    """Line styles per run, so that runs with overlapping curves stay distinguishable."""
+    return itertools.cycle(["-", "--", "-.", ":"])
+
+
+def loss_figure(runs: Sequence[Run]) -> Figure:
+    """Training next-frame BCE of every run against training samples (frames) seen, each a
+    running average over the previous 4096 samples (thesis figures 5.1, 5.3, 5.7, 5.8)."""
+    fig = Figure(figsize=LOSS_SIZE)
+    ax = fig.add_subplot()
+    for run, style in zip(runs, _styles()):
+        steps, loss = training_loss(run)
+        ax.plot((steps + 1) * run.samples_per_step, running_mean(loss, run.loss_window), style, label=run.label)
+    ax.set_yscale("log")
+    ax.set_xlabel("training samples (frames)")
+    ax.set_ylabel("training BCE per pixel")
+    ax.set_title("Training loss (running average over 4096 samples)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+_LAYER = re.compile(r"^(.*?)(\d+)(/kernel|/bias)$")
+
+
+def resolve_groups(requested: Sequence[str] | None, available: set[str]) -> list[str]:
+    """The parameter groups to plot. Explicit `requested` groups must exist. The default
+    groups fall back, for a smaller preset, to the deepest layer of the same kind at or
+    below the requested index (e.g. `obs_enc/conv3/kernel` -> `obs_enc/conv2/kernel`)."""
+    if requested is not None:
+        missing = [g for g in requested if g not in available]
+        if missing:
+            raise ValueError(f"no run logs the norm ratio of {missing}; available groups: {sorted(available)}")
+        return list(requested)
+    groups = []
+    for group in DEFAULT_RATIO_GROUPS:
+        match = _LAYER.match(group)
+        prefix, index, suffix = match.group(1), int(match.group(2)), match.group(3)
+        candidates = [int(m.group(2)) for m in map(_LAYER.match, available)
+                      if m and m.group(1) == prefix and m.group(3) == suffix and int(m.group(2)) <= index]
+        if candidates:
+            groups.append(f"{prefix}{max(candidates)}{suffix}")
+    if not groups:
+        raise ValueError(f"none of the default groups {DEFAULT_RATIO_GROUPS} exist; pass groups= from {sorted(available)}")
+    return groups
+
+
+def ratios_figure(runs: Sequence[Run], groups: Sequence[str] | None = None) -> Figure:
+    """Norm ratio ||grad|| / ||param|| of each chosen parameter group (one subplot per group,
+    every run on it), running average over 256 steps (thesis figures 5.4, 5.5: the encoder's
+    layer-4 kernel and the decoder's layer-3 kernel). Ratios >> 1 mean divergence."""
+    available = {g for run in runs for m in run.metrics for g in m.get("ratios", {})}
+    groups = resolve_groups(groups, available)
+    fig = Figure(figsize=ratios_size(len(groups)))
+    axes = fig.subplots(1, len(groups), squeeze=False)[0]
+    for ax, group in zip(axes, groups):
+        for run, style in zip(runs, _styles()):
+            points = [(m["step"], m["ratios"][group]) for m in run.metrics if group in m.get("ratios", {})]
+            if points:
+                steps, values = np.array(points).T
+                ax.plot(steps, running_mean(values, RATIO_WINDOW), style, label=run.label)
+        ax.set_yscale("log")
+        ax.set_xlabel("training step")
+        ax.set_ylabel("||grad|| / ||param||")
+        ax.set_title(group)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize="small")
+    fig.suptitle(f"Norm ratios (running average over {RATIO_WINDOW} steps)")
+    fig.tight_layout()
+    return fig
+
+
+def has_code_error(run: Run) -> bool:
+    return any("code_pred_mse" in e for e in run.evals) or any("code_pred_mse" in m.get("terms", {}) for m in run.metrics)
+
+
+def code_error_figure(runs: Sequence[Run]) -> Figure:
+    """Code-prediction error MSE(d_t, k_t) between the predicted and the actual next input code
+    over training (thesis figure 5.6): held-out evaluations as markers, the training value as
+    a running average over 4096 samples."""
+    fig = Figure(figsize=CODE_ERROR_SIZE)
+    ax = fig.add_subplot()
+    for run, style in zip(runs, _styles()):
+        if not has_code_error(run):
+            continue
+        train = [(m["step"], m["terms"]["code_pred_mse"]) for m in run.metrics if "code_pred_mse" in m.get("terms", {})]
+        color = None
+        if train:
+            steps, values = np.array(train).T
+            (line,) = ax.plot(steps, running_mean(values, run.loss_window), style, lw=1, alpha=0.8,
+                              label=f"{run.label}, train")
+            color = line.get_color()
+        held = [(e["step"], e["code_pred_mse"]) for e in run.evals if e.get("code_pred_mse") is not None]
+        if held:
+            steps, values = np.array(held).T
+            ax.plot(steps, values, "o--", color=color, label=f"{run.label}, held-out")
+    ax.set_yscale("log")
+    ax.set_xlabel("training step")
+    ax.set_ylabel("MSE(predicted code, next input code)")
+    ax.set_title("Code-prediction error (train: running average over 4096 samples)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+# ---------------------------------------------------------------- figures of a trained model
+
+
+class Rollout(NamedTuple):
+    """An open-loop rollout on one episode: `frames` o_0 .. o_{K+n-1}, `logits[i]` the model's
+    prediction of o_{i+1} (teacher-forced for i < K, fed its own prediction after), K = `context`."""
+
+    frames: np.ndarray  # [K + n, H, W] in [0, 1]
+    logits: np.ndarray  # [K + n - 1, H, W]
+    context: int
+
+    @property
+    def horizon(self) -> int:
+        return self.frames.shape[0] - self.context
+
+
+def _as_float(frames: np.ndarray) -> np.ndarray:
+    frames = np.asarray(frames)
+    return frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _open_loop(variant: Variant, params, frames, actions, horizon: int):
+    """Logits `[K + horizon - 1, H, W]`: teacher-forced on the K context `frames`, then each
+    step fed with the sigmoid of the model's own previous prediction."""
+    context = frames.shape[0]
+
+    def step(carry, obs, action, first):
+        carry, out = variant.step(params, carry, StepInput(obs[None], action[None], first[None]))
+        return carry, out["logits"][0]
+
+    first = jnp.arange(context) == 0
+    carry, logits = jax.lax.scan(lambda c, x: step(c, *x), variant.init_carry(1), (frames, actions[:context], first))
+
+    def dreamed(state, action):
+        carry, prev = state
+        carry, out = step(carry, jax.nn.sigmoid(prev), action, jnp.array(False))
+        return (carry, out), out
+
+    _, free = jax.lax.scan(dreamed, (carry, logits[-1]), actions[context: context + horizon - 1])
+    return jnp.concatenate([logits, free], axis=0)
+
+
+def open_loop_predictions(model: Model, episode, context: int = 8, horizon: int = 8) -> Rollout:
+    """After `context` observed frames the model predicts `horizon` frames o_K .. o_{K+n-1},
+    the first from the last observed frame, each later one from its own previous prediction
+    (actions are the episode's). Both numbers are shortened to fit the episode."""
+    n = len(episode)
+    if n < 2:
+        raise ValueError(f"an episode of {n} frame(s) has no next frame to predict")
+    context = max(1, min(context, n - 1))
+    horizon = max(1, min(horizon, n - context))
+    frames = _as_float(episode.frames[: context + horizon])
+    actions = np.asarray(episode.actions[: context + horizon], np.float32)
+    logits = _open_loop(model.variant, model.params, jnp.asarray(frames[:context]), jnp.asarray(actions), horizon)
+    return Rollout(frames=frames, logits=np.asarray(logits), context=context)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+
+def _show(ax, image, title, cmap="gray"):
+    im = ax.imshow(image, cmap=cmap, vmin=0.0, vmax=1.0, interpolation="nearest")
+    ax.set_title(title, fontsize="medium")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    return im
+
+
+def prediction_figure(run: Run, model: Model, rollout: Rollout) -> Figure:
+    """Input frame o_t, predicted next frame õ_{t+1}, true o_{t+1} and |õ_{t+1} - o_{t+1}|, with
+    t the last of the rollout's observed frames (thesis figure 5.2)."""
+    t = rollout.context - 1
+    logits, truth = rollout.logits[t], rollout.frames[t + 1]
+    pred = _sigmoid(logits)
+    bce = float(np.mean(np.logaddexp(0.0, logits) - truth * logits))
+    fig = Figure(figsize=PREDICTION_SIZE)
+    axes = fig.subplots(1, 5, width_ratios=(1, 1, 1, 1, 0.05))
+    _show(axes[0], rollout.frames[t], f"input $o_t$ (t = {t})")
+    _show(axes[1], pred, r"predicted $\tilde{o}_{t+1}$")
+    _show(axes[2], truth, r"true $o_{t+1}$")
+    im = _show(axes[3], np.abs(pred - truth), r"$|\tilde{o}_{t+1} - o_{t+1}|$", cmap="magma")
+    fig.colorbar(im, cax=axes[4])
+    fig.suptitle(f"{run.label}, checkpoint step {model.step}: next-frame prediction on a held-out episode (BCE {bce:.4f})")
+    fig.subplots_adjust(left=0.01, right=0.96, bottom=0.03, top=0.83, wspace=0.08)
+    return fig
+
+
+def rollout_figure(run: Run, model: Model, rollout: Rollout) -> Figure:
+    """An open-loop rollout on a held-out episode: top row the true frames o_K .. o_{K+n-1},
+    bottom row the predictions; the first is a one-step prediction from the last observed
+    frame, every later one is made from the model's own previous prediction."""
+    k, n = rollout.context, rollout.horizon
+    fig = Figure(figsize=rollout_size(n))
+    axes = fig.subplots(2, n, squeeze=False)
+    for j in range(n):
+        _show(axes[0, j], rollout.frames[k + j], f"t = {k + j}")
+        _show(axes[1, j], _sigmoid(rollout.logits[k - 1 + j]), f"+{j + 1}" if j else "1-step")
+    axes[0, 0].set_ylabel("truth")
+    axes[1, 0].set_ylabel("predicted")
+    fig.suptitle(f"{run.label}, checkpoint step {model.step}: open-loop rollout after {k} observed frames")
+    fig.subplots_adjust(left=0.5 / fig.get_figwidth(), right=0.99, bottom=0.02, top=0.8, wspace=0.05, hspace=0.3)
+    return fig
+
+
+def bce_bars_figure(rows: Sequence[dict]) -> Figure:
+    """Per run: next-frame BCE on training and on held-out episodes, next to the
+    copy-last-frame baseline on the same frames (thesis figure 5.9). `rows` are
+    `cdrl.report.evaluate_model` rows."""
+    fig = Figure(figsize=bars_size(len(rows)))
+    ax = fig.add_subplot()
+    bars = (("train_bce", "model, train", "C0", None), ("test_bce", "model, held-out", "C1", None),
+            ("train_copy_bce", "copy last frame, train", "C0", "//"), ("test_copy_bce", "copy last frame, held-out", "C1", "//"))
+    x = np.arange(len(rows))
+    width = 0.8 / len(bars)
+    for i, (key, label, color, hatch) in enumerate(bars):
+        values = [row.get(key) if row.get(key) is not None else np.nan for row in rows]
+        ax.bar(x + (i - (len(bars) - 1) / 2) * width, values, width, label=label, color=color,
+               hatch=hatch, alpha=0.45 if hatch else 0.9, edgecolor="black", linewidth=0.5)
+    ax.set_xticks(x, [f"{row['run']}\n({row['variant']}, step {row['steps']})" for row in rows])
+    ax.set_ylabel("BCE per pixel")
+    counts = sorted({(row["train_episodes"], row["test_episodes"]) for row in rows})
+    episodes = ", ".join(f"{a} train / {b} held-out" for a, b in counts)
+    ax.set_title(f"Next-frame BCE, train vs held-out\n(episodes: {episodes})")
+    top = max((row[key] for row in rows for key, *_ in bars if row.get(key) is not None), default=1.0)
+    ax.set_ylim(0, 1.3 * top)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize="small", ncols=2, loc="upper center")
+    fig.tight_layout()
+    return fig
+
+
+# ---------------------------------------------------------------- all figures
+
+
+def plot_runs(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None, *,
+              groups: Sequence[str] | None = None, episodes: int = 2, context: int = 8,
+              horizon: int = 8) -> list[Path]:
+    """Write every figure for `run_dirs` into `out_dir` (default `run_dirs[0]/plots`) and return
+    the paths written. `groups`: parameter groups of the norm-ratio figure; `episodes`: training
+    and held-out episodes scored for the BCE bars; `context`/`horizon`: observed frames before
+    the prediction and rollout figures, and rollout length.
+
+    FileNotFoundError / ValueError (naming the path) for a directory that is not a run, a run
+    with no logged step, or a run without a usable checkpoint.
+    """
+    if not run_dirs:
+        raise ValueError("plot_runs needs at least one run directory")
+    runs = [load_run(d) for d in run_dirs]
+    models = []
+    for run in runs:
+        try:
+            models.append(restore_model(run))
+        except CheckpointError as exc:
+            raise ValueError(f"{run.path}: {exc}") from None
+    out = Path(out_dir) if out_dir is not None else runs[0].path / "plots"
+    out.mkdir(parents=True, exist_ok=True)
+
+    written = [save_figure(loss_figure(runs), out / "loss.png"),
+               save_figure(ratios_figure(runs, groups), out / "ratios.png")]
+    if any(map(has_code_error, runs)):
+        written.append(save_figure(code_error_figure(runs), out / "code_error.png"))
+    rows = []
+    for run, model, stem in zip(runs, models, file_stems(runs)):
+        train, test = run_episodes(run, episodes)
+        rows.append(evaluate_model(run, model, episodes, data=(train, test)))
+        rollout = open_loop_predictions(model, test[0], context, horizon)
+        written.append(save_figure(prediction_figure(run, model, rollout), out / f"prediction_{stem}.png"))
+        written.append(save_figure(rollout_figure(run, model, rollout), out / f"rollout_{stem}.png"))
+    written.append(save_figure(bce_bars_figure(rows), out / "bce_bars.png"))
+    return written

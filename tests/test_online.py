@@ -1,0 +1,106 @@
+"""Online controller training: where the gradients go, scan against a loop, and a reward
+that a controller can learn."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdrl import config, online, variants
+from cdrl.online import OnlineConfig, OnlineHParams
+
+ARCH = config.TINY
+
+
+@pytest.fixture(scope="module")
+def game():
+    from envs.slither import Slither
+
+    g = Slither(num_opponents=2, max_segments=16, arena_size=1000.0)
+    return g, g.default_params.replace(max_steps=40)
+
+
+def _state(game, name="final_proposal", scope="controller", hp=None, envs=2, T=4):
+    g, params = game
+    v = variants.make_variant(name, ARCH)
+    cfg = OnlineConfig(num_envs=envs, unroll=T, scope=scope)
+    hp = hp or OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
+    return v, cfg, hp, online.init_online(v, g, params, cfg, jax.random.PRNGKey(0), hp)
+
+
+def _vjp(v, g, cfg, state, hp, env_params):
+    return jax.vjp(lambda p: online._rollout(v, g, cfg, p, state, hp, env_params), state.train.params, has_aux=True)
+
+
+def test_reward_gradient_reaches_the_controller_but_game_outputs_carry_none(game):
+    g, env_params = game
+    v, cfg, hp, state = _state(game)
+    _, vjp, _ = _vjp(v, g, cfg, state, hp, env_params)
+    (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
+    assert float(jnp.sum(jnp.abs(g_reward["act_dec"]["dense0"]["kernel"]))) > 0
+
+    def game_outputs(p):
+        _, (new_state, _, stats, _) = online._rollout(v, g, cfg, p, state, hp, env_params)
+        return jnp.sum(stats["reward"]) + jnp.sum(new_state.obs) + jnp.sum(stats["action"])
+
+    grads = jax.grad(game_outputs)(state.train.params)
+    assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree.leaves(grads))
+
+
+def test_controller_scope_leaves_other_parameters_to_the_model_loss(game):
+    g, env_params = game
+    v, cfg, _, state = _state(game)
+    hp_on = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
+    hp_off = hp_on.replace(ascent=jnp.zeros(()))
+    step = jax.jit(online.online_step_fn, static_argnums=(0, 1, 2))
+    on, _ = step(v, g, cfg, state, hp_on, env_params)
+    off, _ = step(v, g, cfg, state, hp_off, env_params)
+    for group in state.train.params:
+        same = all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(on.train.params[group]),
+                                                         jax.tree.leaves(off.train.params[group])))
+        assert same == (group != "act_dec"), group
+    # With scope "all" the ascent also moves the rest of the model.
+    v, cfg_all, _, state = _state(game, scope="all")
+    on, _ = step(v, g, cfg_all, state, hp_on, env_params)
+    off, _ = step(v, g, cfg_all, state, hp_off, env_params)
+    assert not np.array_equal(on.train.params["reward_head"]["dense1"]["kernel"],
+                              off.train.params["reward_head"]["dense1"]["kernel"])
+
+
+def test_warmup_keeps_the_ascent_off(game):
+    g, env_params = game
+    v, cfg, _, state = _state(game)
+    hp = OnlineHParams.create(warmup_steps=5, ascent=0.5)
+    step = jax.jit(online.online_step_fn, static_argnums=(0, 1, 2))
+    a, m = step(v, g, cfg, state, hp, env_params)
+    b, _ = step(v, g, cfg, state, hp.replace(ascent=jnp.zeros(())), env_params)
+    assert float(m["ascent_on"]) == 0.0
+    jax.tree.map(np.testing.assert_array_equal, a.train.params, b.train.params)
+
+
+def test_online_scan_equals_a_python_loop(game):
+    g, env_params = game
+    v, cfg, hp, state = _state(game, T=3)
+    params = state.train.params
+    (loss, pred), (new_state, terms, stats, _) = online._rollout(v, g, cfg, params, state, hp, env_params)
+    c = online.rollout_carry(state)
+    outs, stats_loop = [], []
+    for _ in range(cfg.unroll):
+        c, (o, s) = online.transition(v, g, params, env_params, hp.noise_std, c)
+        outs.append(o)
+        stats_loop.append(s)
+    stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    loss_loop, pred_loop, _ = online.chunk_objective(v, stack(outs), stack(stats_loop), hp)
+    np.testing.assert_allclose(loss, loss_loop, rtol=1e-5)
+    np.testing.assert_allclose(pred, pred_loop, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(new_state.obs, c[2], rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(stats["reward"], stack(stats_loop)["reward"])
+
+
+def test_offline_variants_are_refused_online(game):
+    g, env_params = game
+    v = variants.make_variant("main", ARCH)
+    with pytest.raises(ValueError, match="has no controller"):
+        online.init_online(v, g, env_params, OnlineConfig(num_envs=1, unroll=2), jax.random.PRNGKey(0),
+                           OnlineHParams.create())
+    with pytest.raises(ValueError, match="unknown ascent scope 'model'"):
+        OnlineConfig(scope="model")

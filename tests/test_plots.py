@@ -1,0 +1,91 @@
+"""The figures and the evaluation table of finished runs: `cdrl.plots`, `cdrl.report`."""
+import json
+import math
+import shutil
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+from cdrl.cli import main as cli_main
+from cdrl.plots import DPI, plot_runs, resolve_groups
+from cdrl.report import eval_runs, running_mean
+from cdrl.run import RunConfig, train_run
+
+RUN = dict(data="synthetic", preset="tiny", episodes=6, episode_steps=30, unroll=8, batch=2, lr=0.3,
+           steps=30, checkpoint_every=15, eval_every=15, eval_episodes=1)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    train_run(RunConfig(variant="main", **RUN), root / "a", progress=False)
+    train_run(RunConfig(variant="residual", seed=1, **RUN), root / "b", progress=False)
+    return [root / "a", root / "b"]
+
+
+def _pixels(inches):
+    """(height, width) in pixels of a figure of (width, height) inches."""
+    return round(inches[1] * DPI), round(inches[0] * DPI)
+
+
+def test_plot_runs_writes_every_figure_at_its_size(runs):
+    written = plot_runs(runs)
+    out = runs[0] / "plots"
+    # Sizes in inches: loss/code error 8x5; ratios 5 per group x 4.5 (two groups on the tiny
+    # preset); prediction 12x3.6; rollout 1 + 1.5 per frame (8) x 3.6; bars max(6, 2 + 1.8 per run) x 5.
+    expected = {
+        "loss.png": (8, 5), "ratios.png": (10, 4.5), "code_error.png": (8, 5),
+        "prediction_a.png": (12, 3.6), "prediction_b.png": (12, 3.6),
+        "rollout_a.png": (13, 3.6), "rollout_b.png": (13, 3.6), "bce_bars.png": (6, 5),
+    }
+    assert sorted(p.name for p in written) == sorted(expected)
+    assert all(p.parent == out for p in written)
+    assert sorted(p.name for p in out.iterdir()) == sorted(expected), "temporary files left behind"
+    for path in written:
+        image = matplotlib.image.imread(path)
+        assert image.shape[:2] == _pixels(expected[path.name]), path.name
+        assert image.std() > 0.01, f"{path.name} is blank"
+
+
+def test_eval_runs_prints_a_table_and_returns_finite_rows(runs, capsys):
+    rows = eval_runs(runs)
+    table = capsys.readouterr().out
+    assert "train BCE" in table and "test BCE" in table
+    assert [row["run"] for row in rows] == ["a", "b"]
+    assert [row["variant"] for row in rows] == ["main", "residual"]
+    for row in rows:
+        assert row["steps"] == 30 and row["train_episodes"] == row["test_episodes"] == 1
+        for key in ("train_bce", "test_bce", "train_copy_bce", "test_copy_bce", "final_train_loss"):
+            assert math.isfinite(row[key]) and row[key] > 0, key
+        json.dumps(row, allow_nan=False)
+    assert rows[0]["test_code_pred_mse"] is None
+    assert math.isfinite(rows[1]["test_code_pred_mse"])
+
+
+def test_not_a_run_is_a_clear_error(tmp_path, runs, capsys):
+    with pytest.raises(ValueError, match=f"{tmp_path}.*not a run directory"):
+        plot_runs([tmp_path])
+    with pytest.raises(FileNotFoundError, match="missing"):
+        plot_runs([tmp_path / "missing"])
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    shutil.copy(runs[0] / "config.json", empty / "config.json")
+    (empty / "metrics.jsonl").write_text("")
+    with pytest.raises(ValueError, match="metrics.jsonl is empty"):
+        eval_runs([empty])
+    assert cli_main(["plot", str(tmp_path)]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+
+
+def test_ratio_groups_fall_back_to_the_deepest_layer_of_a_smaller_preset():
+    tiny = {"obs_enc/conv0/kernel", "obs_enc/conv2/kernel", "obs_dec/deconv2/kernel", "lstm/w_input"}
+    assert resolve_groups(None, tiny) == ["obs_enc/conv2/kernel", "obs_dec/deconv2/kernel"]
+    assert resolve_groups(["lstm/w_input"], tiny) == ["lstm/w_input"]
+    with pytest.raises(ValueError, match="lstm/w_recurrent"):
+        resolve_groups(["lstm/w_recurrent"], tiny)
+
+
+def test_running_mean_averages_the_trailing_window():
+    np.testing.assert_allclose(running_mean([1, 2, 3, 4, 5], 2), [1, 1.5, 2.5, 3.5, 4.5])
+    np.testing.assert_allclose(running_mean([1, 2, 3], 100), [1, 1.5, 2])
