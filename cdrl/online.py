@@ -12,6 +12,7 @@ The ascent term (gradient ascent on predicted reward through BPTT, the thesis's 
 is switched on after `warmup_steps`, and may change either the controller D_a only
 (`scope="controller"`) or every parameter (`scope="all"`, the thesis's literal wording, which
 also lets the model simply predict more reward unless the prediction loss holds it back).
+The scope is a traced number, so one compiled program serves both (and a sweep over them).
 The predicted reward is summed over the T-step chunk: T is the ascent's horizon.
 """
 from __future__ import annotations
@@ -37,11 +38,8 @@ class OnlineConfig:
 
     num_envs: int = 8
     unroll: int = 32
-    scope: str = "controller"
 
     def __post_init__(self):
-        if self.scope not in SCOPES:
-            raise ValueError(f"unknown ascent scope {self.scope!r}; choose one of {SCOPES}")
         if self.num_envs < 1 or self.unroll < 1:
             raise ValueError(f"num_envs and unroll must be >= 1, got {self.num_envs} and {self.unroll}")
 
@@ -58,13 +56,16 @@ class OnlineHParams:
     noise_decay: jax.Array  # per update: std_k = noise_std * noise_decay ** k
     warmup_steps: jax.Array  # updates of pure model learning before the ascent term
     diverge_threshold: jax.Array
+    ascent_all: jax.Array  # 1: the ascent may change every parameter ("all"); 0: the controller only
 
     @classmethod
-    def create(cls, lr=0.1, momentum=0.9, ascent=1.0, reward_weight=1.0, noise_std=0.3, noise_decay=0.999,
-               warmup_steps=100, diverge_threshold=1e3) -> "OnlineHParams":
+    def create(cls, lr=0.1, momentum=0.9, ascent=0.1, reward_weight=0.1, noise_std=0.3, noise_decay=0.999,
+               warmup_steps=100, diverge_threshold=1e3, scope="controller") -> "OnlineHParams":
+        if scope not in SCOPES:
+            raise ValueError(f"unknown ascent scope {scope!r}; choose one of {SCOPES}")
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         return cls(f32(lr), f32(momentum), f32(ascent), f32(reward_weight), f32(noise_std), f32(noise_decay),
-                   f32(warmup_steps), f32(diverge_threshold))
+                   f32(warmup_steps), f32(diverge_threshold), f32(scope == "all"))
 
 
 @flax.struct.dataclass
@@ -171,9 +172,9 @@ def _rollout(variant: Variant, game, cfg: OnlineConfig, params, state: OnlineSta
     return (model_loss, pred_reward), (new_state, terms, stats, noise_std)
 
 
-def _controller_only(tree):
-    """Zero every gradient leaf outside the controller D_a."""
-    return {k: (v if k == "act_dec" else jax.tree.map(jnp.zeros_like, v)) for k, v in tree.items()}
+def _ascent_scope(tree, ascent_all):
+    """The ascent gradient restricted to the controller D_a, or everywhere when `ascent_all`."""
+    return {k: (v if k == "act_dec" else jax.tree.map(lambda x: ascent_all * x, v)) for k, v in tree.items()}
 
 
 def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState, hp: OnlineHParams, env_params):
@@ -183,12 +184,9 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
         lambda p: _rollout(variant, game, cfg, p, state, hp, env_params), params, has_aux=True)
     active = (state.train.step.astype(jnp.float32) >= hp.warmup_steps).astype(jnp.float32)
     lam = hp.ascent * active
-    if cfg.scope == "all":
-        (grads,) = vjp((jnp.ones(()), -lam))
-    else:
-        (g_model,) = vjp((jnp.ones(()), jnp.zeros(())))
-        (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
-        grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _controller_only(g_reward))
+    (g_model,) = vjp((jnp.ones(()), jnp.zeros(())))
+    (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
+    grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _ascent_scope(g_reward, hp.ascent_all))
     tx = optimizer(hp)
     updates, opt_state = tx.update(grads, state.train.opt_state, params)
     new_params = optax.apply_updates(params, updates)

@@ -48,7 +48,7 @@ def make_game(spec: str):
 def hparams(cfg: RunConfig) -> OnlineHParams:
     return OnlineHParams.create(lr=cfg.lr, momentum=cfg.momentum, ascent=cfg.ascent, reward_weight=cfg.reward_weight,
                                 noise_std=cfg.noise_std, noise_decay=cfg.noise_decay, warmup_steps=cfg.warmup_steps,
-                                diverge_threshold=cfg.diverge_threshold)
+                                diverge_threshold=cfg.diverge_threshold, scope=cfg.scope)
 
 
 def compare_policies(variant: Variant, params, game, env_params, episodes: int, max_steps: int,
@@ -68,7 +68,7 @@ def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bo
                      progress: bool | None = None) -> dict:
     game, env_params = make_game(cfg.env)
     env_params = env_params.replace(max_steps=cfg.episode_steps) if "max_steps" not in cfg.env else env_params
-    ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll, scope=cfg.scope)
+    ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll)
     hp = hparams(cfg)
     state = init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)
     ckpts = Checkpoints(run_dir / "checkpoints", keep=cfg.keep_checkpoints)

@@ -55,7 +55,7 @@ class RunConfig:
     env: str = _opt("", "game parameters for the built-in game, e.g. 'max_steps=300,left_bonus=1'")
     scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
-    reward_weight: float = _opt(1.0, "online variants: weight of the reward-prediction loss")
+    reward_weight: float = _opt(0.1, "online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum 0.9 oscillates on it at 1)")
     noise_std: float = _opt(0.3, "online variants: std of the exploration noise on the controller's actions")
     noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration noise")
     warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")

@@ -19,31 +19,33 @@ def game():
     return g, g.default_params.replace(max_steps=40)
 
 
-def _state(game, name="final_proposal", scope="controller", hp=None, envs=2, T=4):
+STEP = online.online_step
+
+
+def _state(game, name="final_proposal", hp=None, envs=2, T=3):
     g, params = game
     v = variants.make_variant(name, ARCH)
-    cfg = OnlineConfig(num_envs=envs, unroll=T, scope=scope)
+    cfg = OnlineConfig(num_envs=envs, unroll=T)
     hp = hp or OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
     return v, cfg, hp, online.init_online(v, g, params, cfg, jax.random.PRNGKey(0), hp)
-
-
-def _vjp(v, g, cfg, state, hp, env_params):
-    return jax.vjp(lambda p: online._rollout(v, g, cfg, p, state, hp, env_params), state.train.params, has_aux=True)
 
 
 def test_reward_gradient_reaches_the_controller_but_game_outputs_carry_none(game):
     g, env_params = game
     v, cfg, hp, state = _state(game)
-    _, vjp, _ = _vjp(v, g, cfg, state, hp, env_params)
-    (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
+
+    @jax.jit
+    def gradients(p):
+        def objective(p):
+            (_, pred), (new_state, _, stats, _) = online._rollout(v, g, cfg, p, state, hp, env_params)
+            game_out = jnp.sum(stats["reward"]) + jnp.sum(new_state.obs) + jnp.sum(stats["action"])
+            return pred, game_out
+
+        return jax.jacrev(objective)(p)
+
+    g_reward, g_game = gradients(state.train.params)
     assert float(jnp.sum(jnp.abs(g_reward["act_dec"]["dense0"]["kernel"]))) > 0
-
-    def game_outputs(p):
-        _, (new_state, _, stats, _) = online._rollout(v, g, cfg, p, state, hp, env_params)
-        return jnp.sum(stats["reward"]) + jnp.sum(new_state.obs) + jnp.sum(stats["action"])
-
-    grads = jax.grad(game_outputs)(state.train.params)
-    assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree.leaves(grads))
+    assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree.leaves(g_game))
 
 
 def test_controller_scope_leaves_other_parameters_to_the_model_loss(game):
@@ -51,17 +53,16 @@ def test_controller_scope_leaves_other_parameters_to_the_model_loss(game):
     v, cfg, _, state = _state(game)
     hp_on = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
     hp_off = hp_on.replace(ascent=jnp.zeros(()))
-    step = jax.jit(online.online_step_fn, static_argnums=(0, 1, 2))
-    on, _ = step(v, g, cfg, state, hp_on, env_params)
-    off, _ = step(v, g, cfg, state, hp_off, env_params)
+    on, _ = STEP(v, g, cfg, state, hp_on, env_params)
+    off, _ = STEP(v, g, cfg, state, hp_off, env_params)
     for group in state.train.params:
         same = all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(on.train.params[group]),
                                                          jax.tree.leaves(off.train.params[group])))
         assert same == (group != "act_dec"), group
-    # With scope "all" the ascent also moves the rest of the model.
-    v, cfg_all, _, state = _state(game, scope="all")
-    on, _ = step(v, g, cfg_all, state, hp_on, env_params)
-    off, _ = step(v, g, cfg_all, state, hp_off, env_params)
+    # With scope "all" (the same compiled program) the ascent also moves the rest of the model.
+    hp_all = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope="all")
+    on, _ = STEP(v, g, cfg, state, hp_all, env_params)
+    off, _ = STEP(v, g, cfg, state, hp_all.replace(ascent=jnp.zeros(())), env_params)
     assert not np.array_equal(on.train.params["reward_head"]["dense1"]["kernel"],
                               off.train.params["reward_head"]["dense1"]["kernel"])
 
@@ -70,9 +71,8 @@ def test_warmup_keeps_the_ascent_off(game):
     g, env_params = game
     v, cfg, _, state = _state(game)
     hp = OnlineHParams.create(warmup_steps=5, ascent=0.5)
-    step = jax.jit(online.online_step_fn, static_argnums=(0, 1, 2))
-    a, m = step(v, g, cfg, state, hp, env_params)
-    b, _ = step(v, g, cfg, state, hp.replace(ascent=jnp.zeros(())), env_params)
+    a, m = STEP(v, g, cfg, state, hp, env_params)
+    b, _ = STEP(v, g, cfg, state, hp.replace(ascent=jnp.zeros(())), env_params)
     assert float(m["ascent_on"]) == 0.0
     jax.tree.map(np.testing.assert_array_equal, a.train.params, b.train.params)
 
@@ -81,11 +81,13 @@ def test_online_scan_equals_a_python_loop(game):
     g, env_params = game
     v, cfg, hp, state = _state(game, T=3)
     params = state.train.params
-    (loss, pred), (new_state, terms, stats, _) = online._rollout(v, g, cfg, params, state, hp, env_params)
+    rollout = jax.jit(lambda p, st: online._rollout(v, g, cfg, p, st, hp, env_params))
+    (loss, pred), (new_state, terms, stats, _) = rollout(params, state)
+    step = jax.jit(lambda p, c: online.transition(v, g, p, env_params, hp.noise_std, c))
     c = online.rollout_carry(state)
     outs, stats_loop = [], []
     for _ in range(cfg.unroll):
-        c, (o, s) = online.transition(v, g, params, env_params, hp.noise_std, c)
+        c, (o, s) = step(params, c)
         outs.append(o)
         stats_loop.append(s)
     stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
@@ -103,4 +105,4 @@ def test_offline_variants_are_refused_online(game):
         online.init_online(v, g, env_params, OnlineConfig(num_envs=1, unroll=2), jax.random.PRNGKey(0),
                            OnlineHParams.create())
     with pytest.raises(ValueError, match="unknown ascent scope 'model'"):
-        OnlineConfig(scope="model")
+        OnlineHParams.create(scope="model")
