@@ -1,0 +1,209 @@
+"""Tests of the on-disk episode data set (cdrl.dataset)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import gymnasium as gym
+import jax
+import numpy as np
+import pytest
+
+from cdrl import dataset as ds
+from cdrl.dataset import DatasetError, Episode, EpisodeDataset, collect, record_gym, split_episodes
+from envs import fastrng
+from envs.gym_env import game_for
+
+SMALL = dict(policy="uniform", seed=7, max_steps=12, batch_size=4, chunk_steps=8, progress=False)
+
+
+def small_collect(path, num_episodes=6, **overrides):
+    return collect(path, num_episodes, **{**SMALL, **overrides})
+
+
+@pytest.fixture(scope="module")
+def collected(tmp_path_factory):
+    path = tmp_path_factory.mktemp("collected")
+    manifest = small_collect(path, num_episodes=10)
+    return path, manifest
+
+
+def load_all(path):
+    return [(e.frames, e.actions, e.rewards) for e in EpisodeDataset(path, "all")]
+
+
+def test_episode_validates_shapes_dtypes_and_ranges():
+    n = 4
+    good = dict(frames=np.zeros((n, 8, 8), np.uint8), actions=np.full((n, 3), 0.5, np.float32),
+                rewards=np.zeros(n, np.float32))
+    assert len(Episode(**good)) == n
+    bad_cases = {
+        "frames": dict(good, frames=np.zeros((n, 8), np.uint8)),
+        "frames float": dict(good, frames=np.full((n, 8, 8), 1.5, np.float32)),
+        "actions": dict(good, actions=np.zeros((n + 1, 3), np.float32)),
+        "actions range": dict(good, actions=np.full((n, 3), 2.0, np.float32)),
+        "actions dtype": dict(good, actions=np.zeros((n, 3), np.float64)),
+        "rewards": dict(good, rewards=np.zeros(n - 1, np.float32)),
+        "rewards finite": dict(good, rewards=np.full(n, np.nan, np.float32)),
+    }
+    for name, kwargs in bad_cases.items():
+        with pytest.raises(ValueError, match=name.split()[0]):
+            Episode(**kwargs)
+
+
+def test_round_trip_matches_the_game(collected):
+    path, manifest = collected
+    assert manifest["complete"] and len(manifest["episodes"]) == 10
+    assert sorted(p.name for p in path.glob("episode_*.npz")) == [f"episode_{i:06d}.npz" for i in range(10)]
+    data = EpisodeDataset(path, "all")
+    assert len(data) == 10 and data.complete
+    assert data.lengths == [e["length"] for e in manifest["episodes"]]
+    game = game_for()
+    params = game.default_params.replace(max_steps=np.int32(12))
+    for i in (0, 9):
+        ep = data[i]
+        assert ep.frames.dtype == np.uint8 and ep.frames.shape[1:] == (150, 150)
+        assert 2 <= len(ep) <= 13
+        assert ep.actions.dtype == np.float32 and ep.actions.shape == (len(ep), 3)
+        assert ((ep.actions > 0.02) & (ep.actions < 0.98)).any()
+        assert ep.rewards[0] == 0.0
+        k_reset = fastrng.split(fastrng.fold_in(jax.random.PRNGKey(7), i), 3)[0]
+        obs, _ = game.jit.reset(k_reset, params)
+        np.testing.assert_array_equal(ep.frames[0], np.round(np.asarray(obs) * 255).astype(np.uint8))
+        if len(ep) == 13:
+            assert manifest["config"]["max_steps"] == 12
+        assert not np.array_equal(ep.frames[0], ep.frames[1])
+
+
+def test_split_is_90_10_disjoint_and_seeded(tmp_path, collected):
+    path, manifest = collected
+    train, test = EpisodeDataset(path, "train"), EpisodeDataset(path, "test")
+    assert len(train) == 9 and len(test) == 1
+    assert set(train.indices) | set(test.indices) == set(range(10))
+    assert not set(train.indices) & set(test.indices)
+    s = split_episodes(100, 0.1, seed=3)
+    assert len(s["test"]) == 10 and len(s["train"]) == 90
+    assert s == split_episodes(100, 0.1, seed=3)
+    assert s["test"] != split_episodes(100, 0.1, seed=4)["test"]
+    assert manifest["split"] == split_episodes(10, 0.1, seed=7)
+
+
+def test_interrupted_write_leaves_no_partial_episode(tmp_path, monkeypatch):
+    real = ds._write_npz
+    calls = []
+
+    def dies_mid_write(f, episode, compress):
+        calls.append(1)
+        if len(calls) == 3:
+            f.write(b"PK\x03\x04 half an episode")
+            raise KeyboardInterrupt
+        real(f, episode, compress)
+
+    monkeypatch.setattr(ds, "_write_npz", dies_mid_write)
+    with pytest.raises(KeyboardInterrupt):
+        small_collect(tmp_path)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["episode_000000.npz", "episode_000001.npz", "manifest.json"]
+    for name in names[:2]:
+        ds.load_episode(tmp_path / name)
+    leftover = tmp_path / ".tmp-episode_000004.npz.abc"
+    leftover.write_bytes(b"PK\x03\x04 killed while writing")
+    assert len(EpisodeDataset(tmp_path, "all")) == 0
+    monkeypatch.setattr(ds, "_write_npz", real)
+    manifest = small_collect(tmp_path)
+    assert manifest["complete"] and not leftover.exists()
+    assert len(EpisodeDataset(tmp_path, "all")) == 6
+
+
+def test_resume_skips_present_episodes_and_reproduces_them(tmp_path, monkeypatch):
+    full = tmp_path / "full"
+    part = tmp_path / "part"
+    small_collect(full)
+    real_write = ds._Writer.write
+    written = []
+
+    def stop_after_five(self, index, episode, compress=True):
+        if len(written) == 5:
+            raise KeyboardInterrupt
+        written.append(index)
+        real_write(self, index, episode, compress)
+
+    monkeypatch.setattr(ds._Writer, "write", stop_after_five)
+    with pytest.raises(KeyboardInterrupt):
+        small_collect(part)
+    listed = json.loads((part / "manifest.json").read_text())["episodes"]
+    assert len(listed) == 4 and not json.loads((part / "manifest.json").read_text())["complete"]
+    written.clear()
+    monkeypatch.setattr(ds._Writer, "write", lambda self, i, e, c=True: (written.append(i), real_write(self, i, e, c)))
+    manifest = small_collect(part)
+    assert written == [5]
+    assert manifest["complete"] and len(manifest["episodes"]) == 6
+    for a, b in zip(load_all(full), load_all(part)):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+
+
+def test_corrupt_file_error_names_the_file(tmp_path):
+    small_collect(tmp_path, num_episodes=2, max_steps=4)
+    victim = tmp_path / "episode_000001.npz"
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
+    data = EpisodeDataset(tmp_path, "all")
+    assert len(data[0]) >= 2
+    with pytest.raises(DatasetError, match="episode_000001.npz"):
+        data[1]
+    with pytest.raises(DatasetError, match="episode_000001.npz"):
+        data.verify()
+    (tmp_path / "episode_000000.npz").write_bytes(b"not a zip")
+    with pytest.raises(DatasetError, match="episode_000000.npz"):
+        data[0]
+
+
+def test_manifest_mismatch_is_refused(tmp_path):
+    small_collect(tmp_path, num_episodes=2, max_steps=4)
+    for change, key in [(dict(seed=8), "seed"), (dict(policy="behaviour"), "policy"),
+                        (dict(env_params={"speed": 5.0}), "env_params"),
+                        (dict(num_episodes=3), "num_episodes")]:
+        kwargs = {"num_episodes": 2, "max_steps": 4, **change}
+        with pytest.raises(DatasetError, match=key):
+            small_collect(tmp_path, **kwargs)
+    assert small_collect(tmp_path, num_episodes=2, max_steps=4)["complete"]
+
+
+class TinyPixels(gym.Env):
+    """A 40 x 60 RGB game: a bright square moves right; ends after 5 steps."""
+
+    metadata = {"render_modes": []}
+    observation_space = gym.spaces.Box(0, 255, (40, 60, 3), np.uint8)
+    action_space = gym.spaces.Box(0.0, 1.0, (3,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self._frame(), {}
+
+    def step(self, action):
+        self.t += 1
+        return self._frame(), float(action[0] > 0.5), self.t >= 5, False, {}
+
+    def _frame(self):
+        f = np.zeros((40, 60, 3), np.uint8)
+        f[10:20, 10 + 4 * self.t: 20 + 4 * self.t, 1] = 255
+        return f
+
+
+def test_record_gym_with_preprocess_options(tmp_path):
+    def policy(obs, rng):
+        return rng.uniform(size=3)
+
+    kwargs = dict(crop=(0, 10, 40, 40), out_size=(20, 20))
+    manifest = record_gym(TinyPixels(), tmp_path, 4, policy, preprocess_kwargs=kwargs, seed=1)
+    assert manifest["complete"] and manifest["config"]["preprocess"]["out_size"] == [20, 20]
+    ep = EpisodeDataset(tmp_path, "all")[0]
+    assert ep.frames.shape == (6, 20, 20) and ep.frames.dtype == np.uint8
+    assert ep.frames[0, 5:10, 0:5].max() == 255 and ep.frames[0, 5:10, 5:].max() == 0
+    np.testing.assert_array_equal(ep.rewards, np.r_[0.0, (ep.actions[:-1, 0] > 0.5)].astype(np.float32))
+    assert record_gym(TinyPixels(), tmp_path, 4, policy, preprocess_kwargs=kwargs, seed=1)["complete"]
+    with pytest.raises(DatasetError, match="seed"):
+        record_gym(TinyPixels(), tmp_path, 4, policy, preprocess_kwargs=kwargs, seed=2)
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp-")]
