@@ -14,8 +14,16 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# The main job: collect observation data from the built-in game (behaviour switching), train
+# the main model (small preset, about 10 minutes on 2 cores), evaluate it and draw the figures.
+# A second `make demo` resumes the run (and finds it finished) instead of starting over.
+DEMO := runs/demo
 demo: $(STAMP)
-	$(VENV)/bin/cdrl train --run-dir runs/demo --data synthetic --lr 1.0 --batch 4 --unroll 16 --steps 300
+	if [ -f $(DEMO)/config.json ]; then $(VENV)/bin/cdrl train --resume $(DEMO); \
+	else $(VENV)/bin/cdrl train --run-dir $(DEMO) --variant main --preset small --episodes 60 \
+		--episode-steps 200 --batch 4 --unroll 32 --lr 0.5 --steps 1500 --eval-every 500; fi
+	$(VENV)/bin/cdrl eval $(DEMO)
+	$(VENV)/bin/cdrl plot $(DEMO)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest

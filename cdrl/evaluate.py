@@ -1,5 +1,6 @@
 """Held-out evaluation: mean next-frame BCE, the copy-last-frame baseline on the same frames,
-and (for variants that share their code space) the code-prediction error MSE(d_{t+1}, k_{t+1}).
+the targets' own entropy (the floor no prediction can beat on grey-level frames), and (for
+variants that share their code space) the code-prediction error MSE(d_{t+1}, k_{t+1}).
 
 Each episode is run from a zero carry in chunks of T steps (the last chunk padded and
 masked), so evaluation uses one compiled program whatever the episode lengths.
@@ -33,8 +34,11 @@ def eval_chunk_stats(variant: Variant, params, carry, chunk: Chunk):
     carry, outs = variant.unroll(params, carry, xs)
     target = as_float(chunk.next_obs)
     copy = jnp.clip(xs.obs, COPY_EPS, 1 - COPY_EPS)
+    p = jnp.clip(target, 1e-7, 1 - 1e-7)
     stats = {
         "bce": _pixel_bce(outs["logits"], target),
+        # The floor of any prediction's BCE: the targets' own entropy (BCE - entropy = KL >= 0).
+        "target_entropy": jnp.mean(-(p * jnp.log(p) + (1 - p) * jnp.log1p(-p)), axis=(-2, -1)),
         "copy_bce": _pixel_bce(jnp.log(copy) - jnp.log1p(-copy), target),
     }
     if variant.shared_code_space:

@@ -106,3 +106,26 @@ def test_offline_variants_are_refused_online(game):
                            OnlineHParams.create())
     with pytest.raises(ValueError, match="unknown ascent scope 'model'"):
         OnlineHParams.create(scope="model")
+
+
+def test_controller_learns_a_trivially_learnable_reward():
+    """With a bonus for turning left, reward ascent teaches the controller to turn left: its
+    noise-free return on held-out seeds clearly beats the uniform-random policy's."""
+    from cdrl import play
+    from envs.policies import get_policy
+    from envs.slither import Slither
+
+    g = Slither(num_opponents=2, max_segments=16, arena_size=1000.0)
+    env_params = g.default_params.replace(max_steps=np.int32(40), left_bonus=np.float32(1.0))
+    v = variants.make_variant("reward_prediction", ARCH)
+    cfg = OnlineConfig(num_envs=8, unroll=8)
+    hp = OnlineHParams.create(lr=0.1, ascent=1.0, reward_weight=0.1, warmup_steps=20, noise_std=0.3, noise_decay=0.98)
+    state = online.init_online(v, g, env_params, cfg, jax.random.PRNGKey(0), hp)
+    for _ in range(80):
+        state, metrics = online.online_step(v, g, cfg, state, hp, env_params)
+    assert float(metrics["ascent_on"]) == 1.0
+    seeds = np.arange(1000, 1016)
+    learned = play.summarize(*play.play(g, env_params, *play.controller_policy(v, state.train.params), seeds, 40))
+    uniform = get_policy("uniform")
+    random = play.summarize(*play.play(g, env_params, uniform.init, uniform.step, seeds, 40))
+    assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
