@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     parser.add_argument("--work-dir", default=None, help="where the runs go (default: a temporary directory)")
     args = parser.parse_args(argv)
 
-    budget = dict(steps=300, batch=8, unroll=16, eval_episodes=32, episode_steps=200) if args.full else \
+    budget = dict(steps=150, batch=8, unroll=16, eval_episodes=24, episode_steps=200) if args.full else \
         dict(steps=20, batch=4, unroll=8, eval_episodes=8, episode_steps=60)
     work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
     results = {"budget": {**budget, "preset": "small", "lr": 0.1, "ascent": 0.1, "warmup_steps": budget["steps"] // 4,

@@ -8,7 +8,6 @@ the whole `OnlineState` (games included), so a resumed run continues exactly.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -17,12 +16,11 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from cdrl.checkpoint import Checkpoints
 from cdrl.loop import divergence_message
 from cdrl.monitor import group_names
 from cdrl.online import OnlineConfig, OnlineHParams, init_online, online_step
 from cdrl.play import controller_policy, format_table, play, summarize
-from cdrl.run import RunConfig, RunLog, _check_compatible, atomic_write_text
+from cdrl.run import RunConfig, open_run
 from cdrl.variants import Variant
 
 
@@ -71,17 +69,7 @@ def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bo
     ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll)
     hp = hparams(cfg)
     state = init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)
-    ckpts = Checkpoints(run_dir / "checkpoints", keep=cfg.keep_checkpoints)
-    metrics_log, eval_log = RunLog(run_dir / "metrics.jsonl"), RunLog(run_dir / "eval.jsonl")
-    start = 0
-    if resume and ckpts.steps():
-        state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
-        for w in warnings:
-            print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
-        start = int(meta["step"])
-    atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
-    metrics_log.truncate(start)
-    eval_log.truncate(start + 1)
+    state, _, start, ckpts, metrics_log, eval_log = open_run(cfg, run_dir, state, resume)
     names = group_names(state.train.params)
 
     def evaluate_policies(step):

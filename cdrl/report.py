@@ -163,7 +163,7 @@ def evaluate_model(run: Run, model: Model, episodes: int, data: tuple[list, list
             raise ValueError(f"{run.path}: the run's data has no {split} episodes")
         scores = evaluate(model.variant, model.params, eps, run.config.unroll)
         row[f"{split}_episodes"] = len(eps)
-        for key in ("bce", "copy_bce", "code_pred_mse"):
+        for key in ("bce", "copy_bce", "target_entropy", "code_pred_mse"):
             value = scores.get(key)
             row[f"{split}_{key}"] = float(value) if value is not None and math.isfinite(value) else None
     _, loss = training_loss(run)
@@ -174,7 +174,8 @@ def evaluate_model(run: Run, model: Model, episodes: int, data: tuple[list, list
 COLUMNS = (
     ("run", "run"), ("variant", "variant"), ("steps", "steps"),
     ("train_bce", "train BCE"), ("test_bce", "test BCE"),
-    ("test_copy_bce", "copy-last BCE"), ("test_code_pred_mse", "code-pred MSE"),
+    ("test_copy_bce", "copy-last BCE"), ("test_target_entropy", "entropy floor"),
+    ("test_code_pred_mse", "code-pred MSE"),
     ("final_train_loss", "final train loss"),
 )
 

@@ -140,6 +140,25 @@ def _check_compatible(cfg: RunConfig):
     return check
 
 
+def open_run(cfg: RunConfig, run_dir: Path, state, resume: bool):
+    """The checkpoints and logs of a run; when resuming, `state` restored from the last good
+    checkpoint (an older one if the newest is corrupt) and the logs cut back to it. Writes the
+    run's config. Returns (state, checkpoint meta or None, first step, checkpoints, metrics log,
+    eval log)."""
+    ckpts = Checkpoints(run_dir / "checkpoints", keep=cfg.keep_checkpoints)
+    metrics_log, eval_log = RunLog(run_dir / "metrics.jsonl"), RunLog(run_dir / "eval.jsonl")
+    start, meta = 0, None
+    if resume and ckpts.steps():
+        state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
+        for w in warnings:
+            print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+        start = int(meta["step"])
+    atomic_write_text(run_dir / "config.json", json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+    metrics_log.truncate(start)
+    eval_log.truncate(start + 1)
+    return state, meta, start, ckpts, metrics_log, eval_log
+
+
 def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, overrides: dict | None = None,
               progress: bool | None = None) -> dict:
     """Train (or resume) a run in `run_dir`; returns a summary dict. Raises `DivergenceError`-like
@@ -167,19 +186,9 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
     hp = HParams.create(variant, cfg.lr, cfg.momentum, diverge_threshold=cfg.diverge_threshold)
     key = jax.random.PRNGKey(cfg.seed)
     state = init_state(variant, key, cfg.batch, hp)
-    ckpts = Checkpoints(run_dir / "checkpoints", keep=cfg.keep_checkpoints)
-    metrics_log, eval_log = RunLog(run_dir / "metrics.jsonl"), RunLog(run_dir / "eval.jsonl")
-
-    start = 0
-    if resume and ckpts.steps():
-        state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
-        for w in warnings:
-            print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+    state, meta, start, ckpts, metrics_log, eval_log = open_run(cfg, run_dir, state, resume)
+    if meta is not None:
         stream.load_state_dict(meta["stream"])
-        start = int(meta["step"])
-    atomic_write_text(config_path, json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
-    metrics_log.truncate(start)
-    eval_log.truncate(start + 1)
 
     names = ratio_names(state)
     schedule = stage_schedule(variant, cfg.steps)
