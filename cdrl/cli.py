@@ -43,6 +43,11 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_eval(args) -> int:
+    if args.policy:
+        return _cmd_eval_policy(args)
+    if not args.run_dirs:
+        print("cdrl eval: give RUN_DIR(s), or --policy RUN_DIR", file=sys.stderr)
+        return 2
     from cdrl.report import eval_runs
 
     try:
@@ -50,6 +55,20 @@ def _cmd_eval(args) -> int:
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"cdrl eval: {exc}", file=sys.stderr)
         return 2
+    print(json.dumps(rows))
+    return 0
+
+
+def _cmd_eval_policy(args) -> int:
+    from cdrl.online_run import eval_policy_run
+    from cdrl.play import format_table
+
+    try:
+        rows = eval_policy_run(Path(args.policy), episodes=args.episodes)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"cdrl eval: {exc}", file=sys.stderr)
+        return 2
+    print(format_table(rows))
     print(json.dumps(rows))
     return 0
 
@@ -101,8 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(func=_cmd_train)
 
     ev = sub.add_parser("eval", help="evaluate trained runs on their held-out episodes and print a table")
-    ev.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
-    ev.add_argument("--episodes", type=int, default=None, help="held-out episodes to use (default: the run's eval_episodes)")
+    ev.add_argument("run_dirs", nargs="*", metavar="RUN_DIR")
+    ev.add_argument("--episodes", type=int, default=None,
+                    help="held-out episodes (with --policy: games per policy) (default: the run's eval_episodes)")
+    ev.add_argument("--policy", metavar="RUN_DIR", default=None,
+                    help="play the controller of RUN_DIR against the random and behaviour-switching policies "
+                         "on the same seeds: mean return with a 95%% CI, episode length (default: none)")
     ev.set_defaults(func=_cmd_eval)
 
     plot = sub.add_parser("plot", help="write the thesis's figures of one or more runs as PNG files")

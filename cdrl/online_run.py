@@ -8,6 +8,7 @@ the whole `OnlineState` (games included), so a resumed run continues exactly.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -116,3 +117,28 @@ def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bo
         rows = evaluate_policies(cfg.steps)
     print(format_table(rows), file=sys.stderr)
     return {"run_dir": str(run_dir), "steps": cfg.steps, "policies": rows}
+
+
+def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = 10_000) -> dict[str, dict]:
+    """`cdrl eval --policy RUN_DIR`: the run's controller (latest good checkpoint, no noise)
+    against the uniform-random and behaviour-switching policies on the same held-out seeds."""
+    from cdrl.checkpoint import Checkpoints
+    from cdrl.variants import make_variant
+
+    run_dir = Path(run_dir)
+    config_path = run_dir / "config.json"
+    if not config_path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a run directory: {config_path} does not exist")
+    cfg = RunConfig(**json.loads(config_path.read_text()))
+    variant = make_variant(cfg.variant, cfg.arch)
+    if not variant.has_controller:
+        raise ValueError(f"run {run_dir} trains {cfg.variant!r}, which has no controller to play with")
+    game, env_params = make_game(cfg.env)
+    env_params = env_params.replace(max_steps=cfg.episode_steps) if "max_steps" not in cfg.env else env_params
+    like = jax.eval_shape(lambda: init_online(variant, game, env_params, OnlineConfig(cfg.batch, cfg.unroll),
+                                              jax.random.PRNGKey(cfg.seed), hparams(cfg)))
+    state, _, warnings = Checkpoints(run_dir / "checkpoints").restore_latest_good(like)
+    for w in warnings:
+        print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+    return compare_policies(variant, state.train.params, game, env_params, episodes or cfg.eval_episodes,
+                            cfg.episode_steps, seed)

@@ -107,3 +107,13 @@ def test_divergence_in_a_run_is_reported_by_group(tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err
     assert "diverged at step" in err and "worst parameter group" in err and "Last good state saved" in err
+
+
+def test_eval_policy_needs_a_controller_run(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--steps", "2", "--checkpoint-every", "2"]) == 0
+    capsys.readouterr()
+    assert cli_main(["eval", "--policy", str(run)]) == 2
+    assert "has no controller" in capsys.readouterr().err
+    assert cli_main(["eval", "--policy", str(tmp_path / "nowhere")]) == 2
+    assert "is not a run directory" in capsys.readouterr().err
