@@ -18,6 +18,7 @@ The predicted reward is summed over the T-step chunk: T is the ascent's horizon.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import flax.struct
@@ -99,9 +100,15 @@ def _reset_games(game, env_params, key, n: int, size: int):
 
 def init_online(variant: Variant, game, env_params, cfg: OnlineConfig, key: jax.Array,
                 hp: OnlineHParams) -> OnlineState:
+    """Fresh parameters, optimiser state, carries and B new games."""
     if not variant.has_controller:
         raise ValueError(f"variant {variant.name!r} has no controller; online training needs one of "
                          "action_loop, reward_prediction, final_proposal")
+    return _init_online(variant, game, env_params, cfg, key, hp)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 3))
+def _init_online(variant, game, env_params, cfg, key, hp) -> OnlineState:
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = variant.init(k_params)
     obs, env_state = _reset_games(game, env_params, k_env, cfg.num_envs, variant.arch.image_size)

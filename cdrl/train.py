@@ -79,7 +79,8 @@ def make_optimizer(hp: HParams) -> optax.GradientTransformation:
 
 
 def init_state(variant: Variant, key: jax.Array, batch: int, hp: HParams | None = None) -> TrainState:
-    params = variant.init(key)
+    # One compiled program: run eagerly, every initialiser op would compile on its own.
+    params = jax.jit(variant.init)(key)
     hp = hp if hp is not None else HParams.create(variant)
     return TrainState(
         params=params,

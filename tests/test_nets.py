@@ -97,7 +97,7 @@ def test_lstm_cell_equals_thesis_equations():
 def test_initialisation_scales():
     """LeCun-normal (std 1/sqrt(fan_in)) before SELU; Glorot-uniform elsewhere; zero biases."""
     arch = config.THESIS
-    params = variants.make_variant("main_action", arch).init(jax.random.PRNGKey(0))
+    params = jax.jit(variants.make_variant("main_action", arch).init)(jax.random.PRNGKey(0))
     k = np.asarray(params["obs_enc"]["conv4"]["kernel"])  # 4x4x64 -> 128, followed by SELU
     assert abs(k.std() * np.sqrt(4 * 4 * 64) - 1.0) < 0.1
     w = np.asarray(params["lstm"]["w_input"])  # Glorot uniform: limit sqrt(6 / (fan_in + fan_out))
@@ -109,14 +109,15 @@ def test_initialisation_scales():
 
 
 def test_thesis_sized_model_one_step():
-    """The full-size main model: one step from a zero carry gives a 150x150 frame in (0, 1)."""
-    v = variants.make_variant("main", config.THESIS)
-    params = v.init(jax.random.PRNGKey(0))
-    x = variants.StepInput(obs=jnp.full((1, 150, 150), 0.5), action=jnp.zeros((1, 3)),
+    """The full-size model (main with action: the initialiser the test above compiled already):
+    one step from a zero carry gives a 150x150 frame in (0, 1)."""
+    v = variants.make_variant("main_action", config.THESIS)
+    params = jax.jit(v.init)(jax.random.PRNGKey(0))
+    x = variants.StepInput(obs=jnp.full((1, 150, 150), 0.5), action=jnp.full((1, 3), 0.5),
                            is_first=jnp.ones((1,), bool))
     carry, out = jax.jit(v.step)(params, v.init_carry(1), x)
     assert out["logits"].shape == (1, 150, 150)
-    assert out["code"].shape == (1, 512) and out["pred_code"].shape == (1, 512)
+    assert out["code"].shape == (1, 512 + 16) and out["pred_code"].shape == (1, 512)
     assert carry.h.shape == (1, 512)
     pred = jax.nn.sigmoid(out["logits"])
     assert bool(jnp.all((pred > 0) & (pred < 1)))

@@ -16,50 +16,50 @@ def game():
     from envs.slither import Slither
 
     g = Slither(num_opponents=2, max_segments=16, arena_size=1000.0)
-    return g, g.default_params.replace(max_steps=40)
+    return g, g.default_params.replace(max_steps=np.int32(40))
 
 
 STEP = online.online_step
+# Every test shares one game, variant and shape, so the online step compiles once.
+ENVS, T = 8, 8
 
 
-def _state(game, name="final_proposal", hp=None, envs=2, T=3):
+def _state(game, hp=None):
     g, params = game
-    v = variants.make_variant(name, ARCH)
-    cfg = OnlineConfig(num_envs=envs, unroll=T)
+    v = variants.make_variant("reward_prediction", ARCH)
+    cfg = OnlineConfig(num_envs=ENVS, unroll=T)
     hp = hp or OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
     return v, cfg, hp, online.init_online(v, g, params, cfg, jax.random.PRNGKey(0), hp)
 
 
-def test_reward_gradient_reaches_the_controller_but_game_outputs_carry_none(game):
+def test_game_outputs_carry_no_gradient(game):
     g, env_params = game
     v, cfg, hp, state = _state(game)
 
     @jax.jit
-    def gradients(p):
-        def objective(p):
-            (_, pred), (new_state, _, stats, _) = online._rollout(v, g, cfg, p, state, hp, env_params)
-            game_out = jnp.sum(stats["reward"]) + jnp.sum(new_state.obs) + jnp.sum(stats["action"])
-            return pred, game_out
+    def game_gradient(p):
+        def game_outputs(p):
+            c, (_, stats) = online.transition(v, g, p, env_params, hp.noise_std, online.rollout_carry(state))
+            return jnp.sum(stats["reward"]) + jnp.sum(c[2]) + jnp.sum(stats["action"])
 
-        return jax.jacrev(objective)(p)
+        return jax.grad(game_outputs)(p)
 
-    g_reward, g_game = gradients(state.train.params)
-    assert float(jnp.sum(jnp.abs(g_reward["act_dec"]["dense0"]["kernel"]))) > 0
-    assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree.leaves(g_game))
+    assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree.leaves(game_gradient(state.train.params)))
 
 
-def test_controller_scope_leaves_other_parameters_to_the_model_loss(game):
+def test_reward_ascent_reaches_the_controller_only_with_scope_controller(game):
+    """The ascent gradient (non-zero) changes the controller D_a; every other group gets exactly
+    the update it gets with lambda = 0. With scope "all" (the same compiled program) the ascent
+    moves the rest of the model too."""
     g, env_params = game
     v, cfg, _, state = _state(game)
     hp_on = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
-    hp_off = hp_on.replace(ascent=jnp.zeros(()))
     on, _ = STEP(v, g, cfg, state, hp_on, env_params)
-    off, _ = STEP(v, g, cfg, state, hp_off, env_params)
+    off, _ = STEP(v, g, cfg, state, hp_on.replace(ascent=jnp.zeros(())), env_params)
     for group in state.train.params:
         same = all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(on.train.params[group]),
                                                          jax.tree.leaves(off.train.params[group])))
         assert same == (group != "act_dec"), group
-    # With scope "all" (the same compiled program) the ascent also moves the rest of the model.
     hp_all = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope="all")
     on, _ = STEP(v, g, cfg, state, hp_all, env_params)
     off, _ = STEP(v, g, cfg, state, hp_all.replace(ascent=jnp.zeros(())), env_params)
@@ -78,24 +78,24 @@ def test_warmup_keeps_the_ascent_off(game):
 
 
 def test_online_scan_equals_a_python_loop(game):
+    """The jitted online step's chunk (a scan) against a Python loop of its transition."""
     g, env_params = game
-    v, cfg, hp, state = _state(game, T=3)
-    params = state.train.params
-    rollout = jax.jit(lambda p, st: online._rollout(v, g, cfg, p, st, hp, env_params))
-    (loss, pred), (new_state, terms, stats, _) = rollout(params, state)
+    v, cfg, hp, state = _state(game)
+    hp = hp.replace(warmup_steps=jnp.asarray(1e9, jnp.float32))  # the loss is then the model loss
+    new_state, metrics = STEP(v, g, cfg, state, hp, env_params)
     step = jax.jit(lambda p, c: online.transition(v, g, p, env_params, hp.noise_std, c))
     c = online.rollout_carry(state)
     outs, stats_loop = [], []
     for _ in range(cfg.unroll):
-        c, (o, s) = step(params, c)
+        c, (o, s) = step(state.train.params, c)
         outs.append(o)
         stats_loop.append(s)
     stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
     loss_loop, pred_loop, _ = online.chunk_objective(v, stack(outs), stack(stats_loop), hp)
-    np.testing.assert_allclose(loss, loss_loop, rtol=1e-5)
-    np.testing.assert_allclose(pred, pred_loop, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(metrics["loss"], loss_loop, rtol=1e-5)
+    np.testing.assert_allclose(metrics["terms"]["pred_reward"], pred_loop, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(new_state.obs, c[2], rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(stats["reward"], stack(stats_loop)["reward"])
+    np.testing.assert_allclose(metrics["reward"], jnp.mean(stack(stats_loop)["reward"]), rtol=1e-6)
 
 
 def test_offline_variants_are_refused_online(game):
@@ -108,17 +108,16 @@ def test_offline_variants_are_refused_online(game):
         OnlineHParams.create(scope="model")
 
 
-def test_controller_learns_a_trivially_learnable_reward():
+def test_controller_learns_a_trivially_learnable_reward(game):
     """With a bonus for turning left, reward ascent teaches the controller to turn left: its
     noise-free return on held-out seeds clearly beats the uniform-random policy's."""
     from cdrl import play
     from envs.policies import get_policy
-    from envs.slither import Slither
 
-    g = Slither(num_opponents=2, max_segments=16, arena_size=1000.0)
-    env_params = g.default_params.replace(max_steps=np.int32(40), left_bonus=np.float32(1.0))
+    g, env_params = game
+    env_params = env_params.replace(left_bonus=np.float32(1.0))
     v = variants.make_variant("reward_prediction", ARCH)
-    cfg = OnlineConfig(num_envs=8, unroll=8)
+    cfg = OnlineConfig(num_envs=ENVS, unroll=T)
     hp = OnlineHParams.create(lr=0.1, ascent=1.0, reward_weight=0.1, warmup_steps=20, noise_std=0.3, noise_decay=0.98)
     state = online.init_online(v, g, env_params, cfg, jax.random.PRNGKey(0), hp)
     for _ in range(80):

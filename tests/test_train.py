@@ -57,9 +57,9 @@ def test_sgd_momentum_is_the_thesis_rule():
     hp = train.HParams.create(v, lr=0.05, momentum=0.9)
     chunks = [stream.next_chunk(), stream.next_chunk()]
     w, carry, mu = state.params, state.carry, None
+    grad = jax.jit(jax.value_and_grad(lambda p, c, ch: train.chunk_loss(v, p, c, hp, ch), has_aux=True))
     for chunk in chunks:
-        (_, (carry_next, _, _)), g = jax.value_and_grad(
-            lambda p: train.chunk_loss(v, p, carry, hp, chunk), has_aux=True)(w)
+        (_, (carry_next, _, _)), g = grad(w, carry, chunk)
         mu = g if mu is None else jax.tree.map(lambda m, gi: 0.9 * m + gi, mu, g)
         w = jax.tree.map(lambda p, m: p - 0.05 * m, w, mu)
         carry = carry_next
@@ -169,7 +169,7 @@ def test_stream_cursor_resumes_exactly():
 
 
 def test_jit_equals_no_jit():
-    v, stream, hp, state = _setup("residual_error")
+    v, stream, hp, state = _setup("residual_error", batch=1, T=2)
     chunk = stream.next_chunk()
     jitted, m1 = step_no_donate(v, state, hp, chunk)
     with jax.disable_jit():

@@ -54,6 +54,7 @@ def _check_loss_grads(v, weights, frozen=()):
         xs = _inputs(T=4, dtype=jnp.float64)
         next_obs = jnp.roll(xs.obs, -1, axis=0)
 
+        @jax.jit
         def loss(p):
             carry = jax.tree.map(lambda c: c.astype(jnp.float64), v.init_carry(2))
             full = {**p, **fixed}
