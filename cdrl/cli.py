@@ -77,7 +77,8 @@ def _cmd_plot(args) -> int:
     from cdrl.plots import plot_runs
 
     try:
-        written = plot_runs([Path(p) for p in args.run_dirs], out_dir=Path(args.out) if args.out else None)
+        written = plot_runs([Path(p) for p in args.run_dirs], out_dir=Path(args.out) if args.out else None,
+                            groups=args.groups)
     except (ValueError, FileNotFoundError) as exc:
         print(f"cdrl plot: {exc}", file=sys.stderr)
         return 2
@@ -131,6 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     plot = sub.add_parser("plot", help="write the thesis's figures of one or more runs as PNG files")
     plot.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
     plot.add_argument("--out", default=None, help="output directory (default: RUN_DIR/plots of the first run)")
+    plot.add_argument("--groups", nargs="+", default=None, metavar="GROUP",
+                      help="parameter groups of the norm-ratio figure, e.g. obs_enc/conv3/kernel "
+                           "(default: the thesis's encoder layer 4 and decoder layer 3 kernels)")
     plot.set_defaults(func=_cmd_plot)
 
     col = sub.add_parser("collect", help="record episodes of the built-in game to a data set directory")
