@@ -56,8 +56,3 @@ def _key_str(key) -> str:
         if hasattr(key, attr):
             return str(getattr(key, attr))
     return str(key)
-
-
-def named_ratios(state: NormRatioState) -> dict[str, jax.Array]:
-    """The ratios as a flat dict keyed by group name."""
-    return dict(zip(group_names(state.ratios), jax.tree.leaves(state.ratios)))

@@ -163,19 +163,9 @@ def lstm_zeros(batch: int, n_hidden: int) -> LSTMState:
     return LSTMState(jnp.zeros((batch, n_hidden), jnp.float32), jnp.zeros((batch, n_hidden), jnp.float32))
 
 
-def lstm_input_projection(params: Params, x: jax.Array) -> jax.Array:
-    """The input part of all four gates' pre-activations (hoistable out of a scan)."""
-    return x @ params["w_input"] + params["bias"]
-
-
 def lstm_cell(params: Params, state: LSTMState, x: jax.Array) -> LSTMState:
     """One LSTM step (thesis eq. 3.4) on inputs `x` `[B, n_in]`."""
-    return lstm_cell_projected(params, state, lstm_input_projection(params, x))
-
-
-def lstm_cell_projected(params: Params, state: LSTMState, x_proj: jax.Array) -> LSTMState:
-    """One LSTM step given the already-projected input `x @ w_input + bias`."""
-    z = x_proj + state.h @ params["w_recurrent"]
+    z = x @ params["w_input"] + state.h @ params["w_recurrent"] + params["bias"]
     f, i, o, u = jnp.split(z, 4, axis=-1)
     c = jax.nn.sigmoid(f) * state.c + jax.nn.sigmoid(i) * jnp.tanh(u)
     h = jax.nn.sigmoid(o) * jnp.tanh(c)

@@ -155,12 +155,3 @@ train_step = jax.jit(train_step_fn, static_argnums=0, donate_argnums=1)
 def ratio_names(state: TrainState) -> list[str]:
     """Names of the entries of `metrics['ratios']`, in order."""
     return group_names(state.params)
-
-
-def eval_chunk_fn(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
-    """Loss terms of one chunk without an update: `(carry, terms, outputs)`."""
-    _, (carry, terms, outs) = chunk_loss(variant, params, carry, hp, chunk)
-    return carry, terms, outs
-
-
-eval_chunk = jax.jit(eval_chunk_fn, static_argnums=0)
