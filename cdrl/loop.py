@@ -47,6 +47,18 @@ def stage_schedule(variant: Variant, steps: int) -> list[tuple[int, dict[str, fl
     return [(i * steps // len(weights), w) for i, w in enumerate(weights)]
 
 
+def enter_stage(variant: Variant, schedule, step: int, state: TrainState, hp: HParams, resumed: bool = False):
+    """(state, hp) for `step`: at a stage's first step its loss weights, and fresh momentum
+    after the first stage. `resumed`: a run (re)starting at `step` also takes the weights of
+    the stage it is inside."""
+    for first, weights in schedule:
+        if step == first and first > 0:
+            state = state.replace(opt_state=make_optimizer(hp).init(state.params))
+        if step == first or (resumed and first <= step):
+            hp = HParams.create(variant, hp.lr, hp.momentum, weights, hp.diverge_threshold)
+    return state, hp
+
+
 def divergence_message(record_step: int, metrics: dict, names: list[str], threshold: float) -> tuple[str, str, float]:
     group = names[int(metrics["worst_group"])]
     ratio = float(metrics["max_ratio"])
@@ -79,11 +91,7 @@ def fit(
     schedule = stage_schedule(variant, steps)
     history: list[StepRecord] = []
     for i in range(steps):
-        for start, weights in schedule:
-            if i == start and start > 0:
-                state = state.replace(opt_state=make_optimizer(hp).init(state.params))
-            if i == start:
-                hp = HParams.create(variant, hp.lr, hp.momentum, weights, hp.diverge_threshold)
+        state, hp = enter_stage(variant, schedule, i, state, hp)
         state, metrics = train_step(variant, state, hp, stream.next_chunk())
         metrics = jax.device_get(metrics)
         if metrics["diverged"]:

@@ -23,8 +23,8 @@ from cdrl import config as configs
 from cdrl import data as data_lib
 from cdrl.checkpoint import CheckpointError, Checkpoints
 from cdrl.evaluate import evaluate
-from cdrl.loop import divergence_message, stage_schedule
-from cdrl.train import HParams, init_state, make_optimizer, ratio_names, train_step
+from cdrl.loop import divergence_message, enter_stage, stage_schedule
+from cdrl.train import HParams, init_state, ratio_names, train_step
 from cdrl.variants import make_variant
 
 
@@ -192,9 +192,7 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
 
     names = ratio_names(state)
     schedule = stage_schedule(variant, cfg.steps)
-    for first, weights in schedule:
-        if first <= start:
-            hp = HParams.create(variant, cfg.lr, cfg.momentum, weights, cfg.diverge_threshold)
+    state, hp = enter_stage(variant, schedule, start, state, hp, resumed=True)
 
     def meta(step):
         return {"step": step, "config": dataclasses.asdict(cfg), "stream": stream.state_dict(),
@@ -211,10 +209,8 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
     frames_per_step = cfg.batch * cfg.unroll
     pending, last_eval, t_last = [], None, time.perf_counter()
     for step in range(start, cfg.steps):
-        for first, weights in schedule:
-            if step == first and first > 0:
-                state = state.replace(opt_state=make_optimizer(hp).init(state.params))
-                hp = HParams.create(variant, cfg.lr, cfg.momentum, weights, cfg.diverge_threshold)
+        if step > start:
+            state, hp = enter_stage(variant, schedule, step, state, hp)
         state, metrics = train_step(variant, state, hp, stream.next_chunk())
         metrics = jax.device_get(metrics)
         now = time.perf_counter()
