@@ -1,4 +1,4 @@
-"""The `cdrl` command line: collect, train, eval, plot, variants.
+"""The `cdrl` command line: collect, train, sweep, lr-search, eval, plot, variants.
 
 Every `train` option is a field of `cdrl.run.RunConfig`; its help text and default come
 from there, so the CLI and the Python API cannot drift apart.
@@ -13,23 +13,36 @@ from pathlib import Path
 
 from cdrl.run import RunConfig
 
+LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
+LR_THRESHOLD = 1.0
 
-def _add_config_options(parser: argparse.ArgumentParser) -> None:
+
+def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...] = (), skip: tuple[str, ...] = ()) -> None:
     """One option per `RunConfig` field. Options not given stay absent from the namespace, so
-    a resumed run changes only what the command line names."""
+    a resumed run changes only what the command line names. Fields in `several` take one or
+    more values (a sweep's grid)."""
     for f in dataclasses.fields(RunConfig):
+        if f.name in skip:
+            continue
+        grid = f.name in several
         parser.add_argument(
             "--" + f.name.replace("_", "-"),
             type=type(f.default),
+            nargs="+" if grid else None,
             default=argparse.SUPPRESS,
-            help=f"{f.metadata['help']} (default: {f.default})",
+            help=f"{f.metadata['help']}{'; several values sweep them' if grid else ''} (default: {f.default})",
         )
+
+
+def _options(args, skip: tuple[str, ...] = ()) -> dict:
+    return {f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig)
+            if hasattr(args, f.name) and f.name not in skip}
 
 
 def _cmd_train(args) -> int:
     from cdrl.run import train_run
 
-    options = {f.name: getattr(args, f.name) for f in dataclasses.fields(RunConfig) if hasattr(args, f.name)}
+    options = _options(args)
     try:
         if args.resume:
             summary = train_run(None, args.resume, resume=True, overrides=options)
@@ -40,6 +53,42 @@ def _cmd_train(args) -> int:
         return 2
     print(json.dumps(summary))
     return 0
+
+
+def _cmd_sweep(args) -> int:
+    from cdrl.sweep import GRID_FIELDS, Grid, format_results, sweep_run
+
+    grid = {name: tuple(getattr(args, name)) for name in GRID_FIELDS if hasattr(args, name)}
+    try:
+        rows = sweep_run(RunConfig(**_options(args, skip=GRID_FIELDS)), Grid(**grid), args.run_dir)
+    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+        print(f"cdrl sweep: {exc}", file=sys.stderr)
+        return 2
+    print(format_results(rows))
+    print(json.dumps(json.loads((Path(args.run_dir) / "results.json").read_text())))
+    return 0
+
+
+def _cmd_lr_search(args) -> int:
+    from cdrl.sweep import lr_search
+
+    try:
+        result = lr_search(RunConfig(**_options(args, skip=("lr", "steps", "diverge_threshold"))),
+                           args.candidates, args.probe_steps, args.threshold)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"cdrl lr-search: {exc}", file=sys.stderr)
+        return 2
+    for c in result["candidates"]:
+        why = c["rejected"]
+        verdict = "ok" if why is None else (
+            f"rejected at step {why['step']}: {why['group']} ratio {why['ratio']:.3g}"
+            + ("" if why["finite"] else " (non-finite)"))
+        print(f"lr {c['lr']:<8g} largest kernel ratio {c['max_ratio']:<10.3g} {verdict}")
+    chosen = result["chosen"]
+    print(f"chosen learning rate: {chosen:g}" if chosen is not None else
+          "no candidate stayed under the threshold: try lower rates")
+    print(json.dumps(result))
+    return 0 if chosen is not None else 1
 
 
 def _cmd_eval(args) -> int:
@@ -119,6 +168,21 @@ def build_parser() -> argparse.ArgumentParser:
                        help="continue the run in RUN_DIR from its last good checkpoint (default: none)")
     _add_config_options(train)
     train.set_defaults(func=_cmd_train)
+
+    sw = sub.add_parser("sweep", help="train a grid (lr x momentum x seed x threshold) as one vmapped program")
+    sw.add_argument("--run-dir", default="runs/sweep", help="directory of the sweep's runs and table (default: runs/sweep)")
+    _add_config_options(sw, several=("lr", "momentum", "seed", "diverge_threshold"))
+    sw.set_defaults(func=_cmd_sweep)
+
+    ls = sub.add_parser("lr-search", help="the thesis's learning-rate search: the highest rate whose norm ratios "
+                                          "stay under a threshold over a probe budget (candidates run in parallel)")
+    ls.add_argument("--candidates", type=float, nargs="+", default=list(LR_CANDIDATES),
+                    help=f"learning rates to probe (default: {' '.join(map(str, LR_CANDIDATES))})")
+    ls.add_argument("--probe-steps", type=int, default=50, help="training steps of the probe (default: 50)")
+    ls.add_argument("--threshold", type=float, default=LR_THRESHOLD,
+                    help=f"largest allowed kernel norm ratio ||grad||/||param|| (default: {LR_THRESHOLD})")
+    _add_config_options(ls, skip=("lr", "steps", "diverge_threshold"))
+    ls.set_defaults(func=_cmd_lr_search)
 
     ev = sub.add_parser("eval", help="evaluate trained runs on their held-out episodes and print a table")
     ev.add_argument("run_dirs", nargs="*", metavar="RUN_DIR")

@@ -10,6 +10,7 @@ import dataclasses
 from typing import Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from cdrl.data import ChunkStream
@@ -50,12 +51,18 @@ def stage_schedule(variant: Variant, steps: int) -> list[tuple[int, dict[str, fl
 def enter_stage(variant: Variant, schedule, step: int, state: TrainState, hp: HParams, resumed: bool = False):
     """(state, hp) for `step`: at a stage's first step its loss weights, and fresh momentum
     after the first stage. `resumed`: a run (re)starting at `step` also takes the weights of
-    the stage it is inside."""
+    the stage it is inside.
+
+    Works on a sweep's stacked state and hyper-parameters too (leading config axis on
+    every leaf and on `hp.lr`)."""
+    stacked = jnp.ndim(hp.lr) > 0
     for first, weights in schedule:
         if step == first and first > 0:
-            state = state.replace(opt_state=make_optimizer(hp).init(state.params))
+            init = make_optimizer(hp).init
+            state = state.replace(opt_state=(jax.vmap(init) if stacked else init)(state.params))
         if step == first or (resumed and first <= step):
             hp = HParams.create(variant, hp.lr, hp.momentum, weights, hp.diverge_threshold)
+            hp = hp.replace(loss_weights={k: jnp.broadcast_to(v, jnp.shape(hp.lr)) for k, v in hp.loss_weights.items()})
     return state, hp
 
 

@@ -6,8 +6,8 @@ and reports the per-group norm ratios of the divergence monitor. The carry at th
 the chunk becomes the next chunk's initial carry, behind a stop-gradient (the TBPTT cut);
 episode starts inside a chunk reset the carry of their stream only.
 
-A step whose loss, gradients or parameters are not finite, or whose largest norm ratio
-exceeds `hparams.diverge_threshold`, is marked `diverged` and leaves the state unchanged,
+A step whose loss, gradients or parameters are not finite, or whose largest norm ratio of
+a kernel (`watched_groups`) exceeds `hparams.diverge_threshold`, is marked `diverged` and leaves the state unchanged,
 so the host keeps the last good parameters.
 """
 from __future__ import annotations
@@ -121,6 +121,13 @@ def all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
 
 
+def watched_groups(params) -> jax.Array:
+    """Which groups the divergence check watches: the kernels and weight matrices (the
+    groups the thesis plots). Biases start at zero, so right after the first update their
+    ratio is about 1 / lr whatever the run does; their ratios are logged, not watched."""
+    return jnp.array([leaf.ndim >= 2 for leaf in jax.tree.leaves(params)])
+
+
 def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk):
     """The un-jitted train step (for `vmap`/`scan` compositions); see `train_step`."""
     grad_fn = jax.value_and_grad(functools.partial(chunk_loss, variant), has_aux=True)
@@ -131,6 +138,7 @@ def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk
     monitor: NormRatioState = opt_state[0]
     ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
     safe = jnp.where(jnp.isfinite(ratios), ratios, jnp.inf)
+    safe = jnp.where(watched_groups(state.params), safe, 0.0)
     finite = jnp.isfinite(loss) & all_finite(grads) & all_finite(params)
     max_ratio = jnp.max(safe)
     diverged = ~finite | (max_ratio > hp.diverge_threshold)

@@ -79,8 +79,21 @@ def test_monitor_ratios_equal_direct_norms():
     np.testing.assert_allclose(metrics["ratios"], want, rtol=1e-4)
     names = train.ratio_names(state)
     assert len(names) == len(want) and "obs_enc/conv0/kernel" in names
-    assert float(metrics["max_ratio"]) == pytest.approx(max(want), rel=1e-4)
+    kernels = [w for w, p in zip(want, jax.tree.leaves(state.params)) if p.ndim >= 2]
+    assert float(metrics["max_ratio"]) == pytest.approx(max(kernels), rel=1e-4)
     assert float(leaf_ratio(jnp.ones(3), jnp.zeros(3))) == 0.0  # a zero group reports 0
+
+
+def test_small_learning_rate_is_not_taken_for_divergence():
+    """After the first update a zero-initialised bias has norm lr * |g|, so its ratio is about
+    1 / lr: the check watches kernels only, or every small rate would 'diverge' at step 1."""
+    v, stream, _, state = _setup(lr=1e-4)
+    hp = train.HParams.create(v, lr=1e-4, diverge_threshold=1e3)
+    for _ in range(3):
+        state, metrics = step_no_donate(v, state, hp, stream.next_chunk())
+        assert not bool(metrics["diverged"])
+    biases = [r for r, n in zip(metrics["ratios"], train.ratio_names(state)) if n.endswith("bias")]
+    assert max(biases) > 1e3  # logged, and above the threshold, but not watched
 
 
 def test_monitor_state_has_fixed_structure_under_scan():

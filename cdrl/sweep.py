@@ -1,0 +1,337 @@
+"""Hyper-parameter sweeps as one program, and the thesis's learning-rate search.
+
+A sweep trains every configuration of a `Grid` (learning rate x momentum x seed x
+divergence threshold) at once: the train step is `vmap`-ed over a leading config axis of
+the state, the traced `HParams` and the data (each seed has its own parameter init and
+data order, exactly as `cdrl train --seed` would), and jitted once. A configuration that
+diverges keeps its last good state and stops there while the others go on.
+
+`sweep_run` writes one ordinary run directory per configuration (config.json, metrics.jsonl,
+eval.jsonl, a final checkpoint), so `cdrl eval`, `cdrl plot` and `cdrl train --resume` work
+on each of them, plus `results.json`, `results.md` and `curves.png` for the whole grid.
+`lr_search` is the thesis's procedure (section 4.3.1): start high and lower the rate until
+no parameter group's norm ratio ||grad|| / ||param|| exceeds a threshold over a probe
+budget, with every candidate probed in parallel.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from cdrl import data as data_lib
+from cdrl.checkpoint import Checkpoints
+from cdrl.evaluate import evaluate
+from cdrl.loop import enter_stage, stage_schedule
+from cdrl.run import RunConfig, RunLog, atomic_write_text, load_episodes
+from cdrl.monitor import group_names
+from cdrl.train import Chunk, HParams, TrainState, make_optimizer, train_step_fn
+from cdrl.variants import Variant, make_variant
+
+GRID_FIELDS = ("lr", "momentum", "seed", "diverge_threshold")
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """The values of each swept option; the sweep trains their cartesian product."""
+
+    lr: tuple[float, ...] = (0.1,)
+    momentum: tuple[float, ...] = (0.9,)
+    seed: tuple[int, ...] = (0,)
+    diverge_threshold: tuple[float, ...] = (1e3,)
+
+    def __post_init__(self):
+        for name in GRID_FIELDS:
+            values = tuple(getattr(self, name))
+            if not values:
+                raise ValueError(f"the grid needs at least one value of {name}")
+            if len(set(values)) != len(values):
+                raise ValueError(f"the grid repeats a value of {name}: {values}")
+            object.__setattr__(self, name, values)
+
+    def configs(self, base: RunConfig) -> list[RunConfig]:
+        """One `RunConfig` per grid point, in `itertools.product` order of the fields."""
+        points = itertools.product(*(getattr(self, name) for name in GRID_FIELDS))
+        return [dataclasses.replace(base, **dict(zip(GRID_FIELDS, p))) for p in points]
+
+
+def config_name(cfg: RunConfig) -> str:
+    return f"lr{cfg.lr:g}-mom{cfg.momentum:g}-seed{cfg.seed}-thr{cfg.diverge_threshold:g}"
+
+
+def stack(trees: Sequence) -> object:
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def take(tree, i: int):
+    """Configuration `i` of a stacked pytree."""
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def sweep_step_fn(variant: Variant, states: TrainState, hps: HParams, alive: jax.Array, chunks: Chunk):
+    """One train step of every configuration; a configuration that is not `alive` (it
+    diverged earlier) keeps its state. Returns (states, alive, metrics with a config axis)."""
+    new, metrics = jax.vmap(functools.partial(train_step_fn, variant))(states, hps, chunks)
+
+    def keep(n, o):
+        return jnp.where(alive.reshape(alive.shape + (1,) * (n.ndim - 1)), n, o)
+
+    states = jax.tree.map(keep, new, states)
+    return states, alive & ~metrics["diverged"], metrics
+
+
+sweep_step = jax.jit(sweep_step_fn, static_argnums=0, donate_argnums=1)
+
+
+def init_sweep(variant: Variant, cfgs: Sequence[RunConfig]) -> tuple[TrainState, HParams]:
+    """Stacked initial states and hyper-parameters, each configuration exactly as
+    `cdrl train` would start it (parameters from `PRNGKey(seed)`)."""
+    hps = stack([HParams.create(variant, c.lr, c.momentum, diverge_threshold=c.diverge_threshold) for c in cfgs])
+    keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
+    params = jax.jit(jax.vmap(variant.init))(keys)
+    carry = variant.init_carry(cfgs[0].batch)
+    states = TrainState(
+        params=params,
+        opt_state=jax.vmap(make_optimizer(take(hps, 0)).init)(params),
+        carry=jax.tree.map(lambda x: jnp.broadcast_to(x, (len(cfgs),) + x.shape), carry),
+        step=jnp.zeros((len(cfgs),), jnp.int32),
+    )
+    return states, hps
+
+
+def _check_grid(cfgs: Sequence[RunConfig], variant: Variant) -> None:
+    if variant.has_controller:
+        raise ValueError(
+            f"variant {variant.name!r} trains online against the game; sweeps cover the offline "
+            "variants (train controller variants with `cdrl train`, one seed at a time)"
+        )
+    for c in cfgs:
+        if c.lr <= 0 or not 0 <= c.momentum < 1:
+            raise ValueError(f"need lr > 0 and 0 <= momentum < 1, got lr={c.lr}, momentum={c.momentum}")
+        if not c.diverge_threshold > 0:
+            raise ValueError(f"diverge_threshold must be > 0, got {c.diverge_threshold}")
+
+
+StepCallback = Callable[[int, dict, float], None]
+
+
+def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, data_lib.ChunkStream], steps: int,
+             callback: StepCallback | None = None, on_diverge: Callable[[int, int, TrainState], None] | None = None):
+    """The host loop of a sweep: `steps` vmapped train steps. `streams` maps each seed to
+    its data stream. `callback(step, metrics, seconds)` sees every step's metrics (numpy,
+    config axis first); `on_diverge(step, i, state_i)` sees the last good state of a
+    configuration at the step it diverges. Returns (stacked final states, alive mask)."""
+    states, hps = init_sweep(variant, cfgs)
+    alive = jnp.ones((len(cfgs),), bool)
+    schedule = stage_schedule(variant, steps)
+    for step in range(steps):
+        states, hps = enter_stage(variant, schedule, step, states, hps)
+        chunk_of = {seed: stream.next_chunk() for seed, stream in streams.items()}
+        chunks = jax.tree.map(lambda *xs: np.stack(xs), *[chunk_of[c.seed] for c in cfgs])
+        t0 = time.perf_counter()
+        was_alive = np.asarray(alive)
+        states, alive, metrics = sweep_step(variant, states, hps, alive, chunks)
+        metrics = jax.device_get(metrics)
+        seconds = time.perf_counter() - t0
+        if on_diverge is not None:
+            for i in np.flatnonzero(was_alive & np.asarray(metrics["diverged"])):
+                on_diverge(step, int(i), take(states, int(i)))
+        metrics["alive_before"] = was_alive
+        if callback is not None:
+            callback(step, metrics, seconds)
+    return states, np.asarray(alive)
+
+
+def _record(step: int, metrics: dict, i: int, names: list[str], fps: float) -> dict:
+    return {
+        "step": step,
+        "loss": float(metrics["loss"][i]),
+        "terms": {k: float(v[i]) for k, v in metrics["terms"].items()},
+        "max_ratio": float(metrics["max_ratio"][i]),
+        "worst_group": names[int(metrics["worst_group"][i])],
+        "ratios": dict(zip(names, np.asarray(metrics["ratios"][i]).tolist())),
+        "fps": fps,
+    }
+
+
+def _streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], Sequence]) -> dict:
+    streams = {}
+    for c in cfgs:
+        if c.seed not in streams:
+            streams[c.seed] = data_lib.ChunkStream(train_eps_of(c), c.batch, c.unroll,
+                                                   image_size=c.arch.image_size, seed=c.seed)
+    return streams
+
+
+def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool | None = None) -> list[dict]:
+    """Train every configuration of `grid` (the other options from `base`) as one vmapped
+    program; write a run directory per configuration and the grid's table and curves.
+    Returns one row per configuration (see `results.json`)."""
+    run_dir = Path(run_dir)
+    if (run_dir / "results.json").exists() or (run_dir / "sweep.json").exists():
+        raise FileExistsError(f"{run_dir} already holds a sweep; pick another --run-dir")
+    cfgs = grid.configs(base)
+    variant = make_variant(base.variant, base.arch)
+    _check_grid(cfgs, variant)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run_dir / "sweep.json", json.dumps(
+        {"base": dataclasses.asdict(base), "grid": dataclasses.asdict(grid)}, indent=2) + "\n")
+
+    cache = run_dir.parent / "data-cache"
+    episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
+    streams = _streams(cfgs, lambda c: episodes[c.seed][0])
+    dirs = [run_dir / config_name(c) for c in cfgs]
+    logs = []
+    for c, d in zip(cfgs, dirs):
+        d.mkdir(exist_ok=True)
+        atomic_write_text(d / "config.json", json.dumps(dataclasses.asdict(c), indent=2) + "\n")
+        logs.append(RunLog(d / "metrics.jsonl"))
+    names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
+    diverged: dict[int, dict] = {}
+
+    def save(i: int, step: int, state: TrainState) -> None:
+        c = cfgs[i]
+        meta = {"step": step, "config": dataclasses.asdict(c), "stream": streams[c.seed].state_dict(),
+                "key": np.asarray(jax.random.PRNGKey(c.seed)).tolist()}
+        Checkpoints(dirs[i] / "checkpoints", keep=c.keep_checkpoints).save(step, state, meta)
+
+    def on_diverge(step: int, i: int, state: TrainState) -> None:
+        save(i, step, state)
+
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = tqdm(total=base.steps, disable=not show, desc=f"sweep {base.variant} x{len(cfgs)}", unit="step")
+    frames = base.batch * base.unroll
+    pending: list[list[dict]] = [[] for _ in cfgs]
+    sweep_fps: list[float] = []
+
+    def callback(step: int, metrics: dict, seconds: float) -> None:
+        sweep_fps.append(len(cfgs) * frames / max(seconds, 1e-9))
+        for i in range(len(cfgs)):
+            if not metrics["alive_before"][i]:
+                continue
+            if metrics["diverged"][i]:
+                diverged[i] = {"diverged_at": step, "diverged_group": names[int(metrics["worst_group"][i])],
+                               "diverged_ratio": float(metrics["max_ratio"][i]),
+                               "finite": bool(metrics["finite"][i])}
+                continue
+            pending[i].append(_record(step, metrics, i, names, frames / max(seconds, 1e-9)))
+        if (step + 1) % base.checkpoint_every == 0:
+            for i, log in enumerate(logs):
+                log.append(pending[i])
+                pending[i] = []
+        bar.update(1)
+        bar.set_postfix(loss=f"{float(np.mean(metrics['loss'])):.4f}", fps=f"{sweep_fps[-1]:.0f}")
+
+    states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge)
+    bar.close()
+    rows = []
+    for i, (c, d, log) in enumerate(zip(cfgs, dirs, logs)):
+        log.append(pending[i])
+        if alive[i]:
+            save(i, base.steps, take(states, i))
+        rows.append(_result_row(variant, c, d, take(states, i).params, episodes[c.seed], diverged.get(i)))
+    # The first step compiles; report the steady state.
+    steady = sweep_fps[1:] or sweep_fps
+    summary = {"configs": len(cfgs), "sweep_fps": float(np.median(steady)), "rows": rows}
+    atomic_write_text(run_dir / "results.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(run_dir / "results.md", format_results(rows) + "\n")
+    from cdrl.plots import loss_figure, save_figure
+    from cdrl.report import load_run
+
+    logged = [load_run(d) for d in dirs if (d / "metrics.jsonl").stat().st_size > 0]
+    if logged:
+        save_figure(loss_figure(logged), run_dir / "curves.png")
+    return rows
+
+
+def _result_row(variant: Variant, cfg: RunConfig, run_dir: Path, params, episodes, diverged: dict | None) -> dict:
+    train_eps, test_eps = episodes
+    row = {"name": config_name(cfg), "run_dir": str(run_dir),
+           **{k: getattr(cfg, k) for k in GRID_FIELDS}, "diverged_at": None}
+    row.update(diverged or {})
+    losses = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line]
+    tail = losses[-max(1, len(losses) // 10):]
+    row["final_loss"] = float(np.mean([r["terms"].get("obs_bce", r["loss"]) for r in tail])) if tail else None
+    row["max_ratio"] = max((r["max_ratio"] for r in losses), default=None)
+    n = cfg.eval_episodes
+    for split, eps in (("train", [train_eps[j] for j in range(min(n, len(train_eps)))]),
+                       ("test", [test_eps[j] for j in range(min(n, len(test_eps)))])):
+        scores = evaluate(variant, params, eps, cfg.unroll)
+        for key in ("bce", "copy_bce", "target_entropy", "code_pred_mse"):
+            value = scores.get(key)
+            row[f"{split}_{key}"] = float(value) if value is not None and math.isfinite(value) else None
+        if split == "test":
+            steps = row["diverged_at"] if row["diverged_at"] is not None else cfg.steps
+            RunLog(run_dir / "eval.jsonl").append([{"step": steps, "split": "test", **scores}])
+    return row
+
+
+def format_results(rows: Sequence[dict]) -> str:
+    """The sweep's rows as a Markdown table."""
+    head = "| config | lr | momentum | seed | threshold | final train BCE | test BCE | copy-last BCE | max ratio | diverged |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+
+    def num(v):
+        return "-" if v is None else f"{v:.4g}"
+
+    for r in rows:
+        div = "-" if r["diverged_at"] is None else f"step {r['diverged_at']} ({r['diverged_group']}, {r['diverged_ratio']:.3g})"
+        lines.append(f"| {r['name']} | {r['lr']:g} | {r['momentum']:g} | {r['seed']} | {r['diverge_threshold']:g} | "
+                     f"{num(r['final_loss'])} | {num(r['test_bce'])} | {num(r['test_copy_bce'])} | "
+                     f"{num(r['max_ratio'])} | {div} |")
+    return "\n".join(lines)
+
+
+def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, threshold: float,
+              progress: bool | None = None, data_cache: str | Path = "runs/data-cache") -> dict:
+    """The thesis's learning-rate search: probe every candidate rate for `probe_steps` steps
+    in one vmapped program; a candidate is rejected as soon as a group's norm ratio exceeds
+    `threshold` (or anything becomes non-finite). Returns the highest rate that survives
+    (`chosen`, None if none does) and, per candidate, the largest ratio seen and, for the
+    rejected ones, the step and parameter group that rejected them. Kernels are watched,
+    not biases (see `cdrl.train.watched_groups`). Game data is cached under `data_cache`."""
+    candidates = sorted({float(c) for c in candidates}, reverse=True)
+    if probe_steps < 1:
+        raise ValueError(f"probe_steps must be >= 1, got {probe_steps}")
+    if not threshold > 0:
+        raise ValueError(f"threshold must be > 0, got {threshold}")
+    grid = Grid(lr=tuple(candidates), momentum=(base.momentum,), seed=(base.seed,), diverge_threshold=(threshold,))
+    cfgs = grid.configs(dataclasses.replace(base, steps=probe_steps))
+    variant = make_variant(base.variant, base.arch)
+    _check_grid(cfgs, variant)
+    train_eps, _ = load_episodes(base, Path(data_cache))
+    streams = _streams(cfgs, lambda c: train_eps)
+    names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
+    largest = np.zeros(len(cfgs))
+    rejected: dict[int, dict] = {}
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = tqdm(total=probe_steps, disable=not show, desc=f"lr-search x{len(cfgs)}", unit="step")
+
+    def callback(step: int, metrics: dict, seconds: float) -> None:
+        for i in range(len(cfgs)):
+            if not metrics["alive_before"][i]:
+                continue
+            ratio = float(metrics["max_ratio"][i])
+            largest[i] = max(largest[i], ratio if math.isfinite(ratio) else math.inf)
+            if metrics["diverged"][i]:
+                rejected[i] = {"step": step, "group": names[int(metrics["worst_group"][i])], "ratio": ratio,
+                               "finite": bool(metrics["finite"][i])}
+        bar.update(1)
+
+    run_grid(variant, cfgs, streams, probe_steps, callback)
+    bar.close()
+    results = [{"lr": c.lr, "max_ratio": float(largest[i]), "rejected": rejected.get(i)} for i, c in enumerate(cfgs)]
+    passing = [r["lr"] for r in results if r["rejected"] is None]
+    return {"chosen": max(passing) if passing else None, "threshold": threshold, "probe_steps": probe_steps,
+            "candidates": results}

@@ -1,0 +1,74 @@
+"""Sweeps: one vmapped program equals the separate runs; divergence stops one config only;
+the learning-rate search rejects the rate that blows up and names the group."""
+import json
+
+import numpy as np
+import pytest
+
+from cdrl.cli import main as cli_main
+from cdrl.run import RunConfig, train_run
+from cdrl.sweep import Grid, lr_search, sweep_run
+
+BASE = dict(preset="tiny", data="synthetic", episodes=6, episode_steps=20, unroll=4, batch=2,
+            steps=6, eval_every=0, eval_episodes=1, checkpoint_every=3)
+
+
+def losses(run_dir):
+    return [json.loads(line)["loss"] for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.parametrize("variant", ["main", "baseline_recurrent"])
+def test_two_config_sweep_equals_two_runs(tmp_path, variant):
+    base = RunConfig(variant=variant, **BASE)
+    grid = Grid(lr=(0.1, 0.03), momentum=(0.9,), seed=(0, 1))
+    rows = sweep_run(base, grid, tmp_path / "sweep", progress=False)
+    assert len(rows) == 4
+    for row in rows[:: 3]:  # (lr 0.1, seed 0) and (lr 0.03, seed 1): lr, init and data order all differ
+        cfg = RunConfig(variant=variant, lr=row["lr"], seed=row["seed"], **BASE)
+        single = tmp_path / f"single-{row['name']}"
+        summary = train_run(cfg, single, progress=False)
+        np.testing.assert_allclose(losses(tmp_path / "sweep" / row["name"]), losses(single), rtol=2e-5, atol=1e-6)
+        assert row["test_bce"] == pytest.approx(summary["final_eval"]["bce"], rel=1e-4)
+    assert losses(tmp_path / "sweep" / rows[0]["name"]) != losses(tmp_path / "sweep" / rows[1]["name"])
+    assert (tmp_path / "sweep" / "curves.png").stat().st_size > 0
+    assert "| lr0.1-mom0.9-seed0-thr1000 |" in (tmp_path / "sweep" / "results.md").read_text()
+
+
+def test_sweep_config_resumes_as_a_run(tmp_path):
+    """Each config's directory is an ordinary run: `cdrl train --resume` continues it exactly
+    as the single run would have gone on."""
+    base = RunConfig(variant="main", **BASE)
+    rows = sweep_run(base, Grid(lr=(0.1, 0.05)), tmp_path / "sweep", progress=False)
+    cont = train_run(None, rows[1]["run_dir"], resume=True, overrides={"steps": 9}, progress=False)
+    full = tmp_path / "full"
+    train_run(RunConfig(variant="main", lr=0.05, **{**BASE, "steps": 9}), full, progress=False)
+    assert cont["steps"] == 9
+    np.testing.assert_allclose(losses(tmp_path / "sweep" / rows[1]["name"]), losses(full), rtol=2e-5, atol=1e-6)
+
+
+def test_diverging_config_stops_alone(tmp_path):
+    base = RunConfig(variant="main", **BASE)
+    rows = sweep_run(base, Grid(lr=(0.05, 1e4)), tmp_path / "sweep", progress=False)
+    good, bad = rows
+    assert good["diverged_at"] is None and len(losses(tmp_path / "sweep" / good["name"])) == BASE["steps"]
+    assert bad["diverged_at"] is not None and bad["diverged_group"]
+    assert len(losses(tmp_path / "sweep" / bad["name"])) == bad["diverged_at"]
+    assert bad["test_bce"] is not None and np.isfinite(bad["test_bce"])  # the last good parameters
+
+
+def test_lr_search_picks_highest_stable_rate():
+    base = RunConfig(variant="main", **BASE)
+    result = lr_search(base, candidates=[1e4, 0.1, 0.01], probe_steps=4, threshold=10.0, progress=False)
+    by_lr = {c["lr"]: c for c in result["candidates"]}
+    assert result["chosen"] == 0.1
+    assert by_lr[1e4]["rejected"] is not None and "/" in by_lr[1e4]["rejected"]["group"]
+    assert by_lr[0.1]["rejected"] is None and by_lr[0.1]["max_ratio"] <= 10.0
+
+
+def test_sweep_cli_and_bad_input(tmp_path, capsys):
+    assert cli_main(["sweep", "--run-dir", str(tmp_path / "s"), "--variant", "final_proposal", "--preset", "tiny"]) == 2
+    assert "online" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="repeats a value of lr"):
+        Grid(lr=(0.1, 0.1))
+    with pytest.raises(ValueError, match="lr > 0"):
+        sweep_run(RunConfig(variant="main", **BASE), Grid(lr=(0.1, -1.0)), tmp_path / "x", progress=False)
