@@ -68,6 +68,43 @@ def test_conv_transpose_matches_its_definition(size, kernel, stride, padding):
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("size,kernel,stride,padding", [(150, 4, 2, 2), (7, 4, 2, 1), (5, 5, 1, 0), (9, 3, 2, 1), (8, 4, 4, 0)])
+def test_matmul_convolution_equals_xla_convolution(size, kernel, stride, padding):
+    """The space-to-depth matrix-multiply convolution against XLA's, values and gradients."""
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(rng.normal(size=(2, size, size, 3)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, 5)), jnp.float32)
+
+    def xla(x, k):
+        return jax.lax.conv_general_dilated(x, k, (stride, stride), [(padding, padding)] * 2,
+                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+    def mine(x, k):
+        return nets.conv2d(x, k, stride, padding)
+
+    np.testing.assert_allclose(mine(x, k), xla(x, k), rtol=1e-4, atol=1e-4)
+    cot = jnp.asarray(rng.normal(size=xla(x, k).shape), jnp.float32)
+    for got, want in zip(jax.vjp(mine, x, k)[1](cot), jax.vjp(xla, x, k)[1](cot)):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+
+
+def test_matmul_conv_transpose_gradient_equals_dilated_form():
+    rng = np.random.default_rng(2)
+    x = jnp.asarray(rng.normal(size=(2, 10, 10, 3)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(4, 4, 3, 2)), jnp.float32)
+
+    def dilated(x, k):
+        return jax.lax.conv_general_dilated(x, k[::-1, ::-1], (1, 1), [(2, 2)] * 2, lhs_dilation=(2, 2),
+                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+    out = nets.conv_transpose(x, k, 2, 1)
+    cot = jnp.asarray(rng.normal(size=out.shape), jnp.float32)
+    np.testing.assert_allclose(out, dilated(x, k), rtol=1e-4, atol=1e-4)
+    for got, want in zip(jax.vjp(lambda a, b: nets.conv_transpose(a, b, 2, 1), x, k)[1](cot),
+                         jax.vjp(dilated, x, k)[1](cot)):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+
+
 def test_lstm_cell_equals_thesis_equations():
     """Eq. 3.4 with separate per-gate weight matrices, computed in float64 numpy."""
     rng = np.random.default_rng(1)
