@@ -18,7 +18,6 @@ The predicted reward is summed over the T-step chunk: T is the ascent's horizon.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any
 
 import flax.struct
@@ -27,7 +26,7 @@ import jax.numpy as jnp
 import optax
 
 from cdrl.monitor import NormRatioState, norm_ratio_monitor
-from cdrl.train import TrainState, all_finite
+from cdrl.train import TrainState, all_finite, run_once
 from cdrl.variants import StepInput, Variant, bce_with_logits
 
 SCOPES = ("controller", "all")
@@ -104,10 +103,9 @@ def init_online(variant: Variant, game, env_params, cfg: OnlineConfig, key: jax.
     if not variant.has_controller:
         raise ValueError(f"variant {variant.name!r} has no controller; online training needs one of "
                          "action_loop, reward_prediction, final_proposal")
-    return _init_online(variant, game, env_params, cfg, key, hp)
+    return run_once(_init_online, variant, game, env_params, cfg, key, hp, static_argnums=(0, 1, 3))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 3))
 def _init_online(variant, game, env_params, cfg, key, hp) -> OnlineState:
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = variant.init(k_params)

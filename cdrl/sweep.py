@@ -36,7 +36,7 @@ from cdrl.evaluate import evaluate
 from cdrl.loop import enter_stage, stage_schedule
 from cdrl.run import RunConfig, RunLog, atomic_write_text, load_episodes
 from cdrl.monitor import group_names
-from cdrl.train import Chunk, HParams, TrainState, make_optimizer, train_step_fn
+from cdrl.train import Chunk, HParams, TrainState, init_params, make_optimizer, train_step_fn
 from cdrl.variants import Variant, make_variant
 
 GRID_FIELDS = ("lr", "momentum", "seed", "diverge_threshold")
@@ -99,7 +99,7 @@ def init_sweep(variant: Variant, cfgs: Sequence[RunConfig]) -> tuple[TrainState,
     `cdrl train` would start it (parameters from `PRNGKey(seed)`)."""
     hps = stack([HParams.create(variant, c.lr, c.momentum, diverge_threshold=c.diverge_threshold) for c in cfgs])
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
-    params = jax.jit(jax.vmap(variant.init))(keys)
+    params = init_params(variant, keys)
     carry = variant.init_carry(cfgs[0].batch)
     states = TrainState(
         params=params,

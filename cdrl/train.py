@@ -78,9 +78,25 @@ def make_optimizer(hp: HParams) -> optax.GradientTransformation:
     return optax.chain(norm_ratio_monitor(), optax.sgd(hp.lr, momentum=hp.momentum))
 
 
+# Programs that run once (initialisers) compile without LLVM optimisation: the many
+# truncated-normal samplers of an init take XLA ~16 s to optimise for the tiny preset on two
+# cores and ~1.4 s not to, for a program that then runs once.
+RUN_ONCE = {"xla_backend_optimization_level": 0}
+
+
+def run_once(fn, *args, static_argnums: tuple[int, ...] = ()):
+    """`jax.jit(fn, static_argnums)(*args)`, compiled for a single call (see `RUN_ONCE`)."""
+    compiled = jax.jit(fn, static_argnums=static_argnums).lower(*args).compile(compiler_options=RUN_ONCE)
+    return compiled(*[a for i, a in enumerate(args) if i not in static_argnums])
+
+
+def init_params(variant: Variant, key: jax.Array):
+    """The variant's initial parameters from `key` (or stacked, from a stack of keys)."""
+    return run_once(jax.vmap(variant.init) if key.ndim > 1 else variant.init, key)
+
+
 def init_state(variant: Variant, key: jax.Array, batch: int, hp: HParams | None = None) -> TrainState:
-    # One compiled program: run eagerly, every initialiser op would compile on its own.
-    params = jax.jit(variant.init)(key)
+    params = init_params(variant, key)
     hp = hp if hp is not None else HParams.create(variant)
     return TrainState(
         params=params,

@@ -1,0 +1,508 @@
+"""Training throughput: cdrl's jitted train step against an eager PyTorch reference.
+
+For each variant (`main`, `closed_loop_minus`) and batch size B (1 and 8), one process builds
+
+  * cdrl: `cdrl.train.train_step` (jitted, the variant a static argument, the state donated;
+    SGD lr 0.1, momentum 0.9 with the divergence monitor and the keep-the-old-state-on-
+    divergence selects, exactly what `cdrl train` runs), and
+  * torch: `benchmarks/torch_reference.py` (eager PyTorch, same network, same loss,
+    torch.optim.SGD(lr 0.1, momentum 0.9), the same norm-ratio monitor, carry detached
+    between chunks), `torch.set_num_threads(os.cpu_count())`,
+
+from the SAME initial weights, feeds both the same synthetic uint8 chunks of T (`--unroll`)
+frames of B streams (random values: the cost does not depend on them), warms up (cdrl: the
+first call, which compiles; torch: a few steps), then runs `--repeats` ALTERNATING repeats
+(cdrl repeat, torch repeat, ...) of `--steps-per-repeat` steps each. Every step of both reads
+its loss back to the host (as a training loop that logs does). Reported per configuration:
+
+  * training frames/s of each (median over the repeats; frames = T * B per step) and the
+    ratio cdrl / torch;
+  * cdrl's compile time: the first call of the train step (trace + lower + compile + one
+    step), with jax's persistent compilation cache disabled for the whole benchmark;
+  * peak memory of each: the process's peak RSS (VmHWM) during that framework's repeats,
+    after resetting it (writing 5 to /proc/self/clear_refs, after a malloc_trim) before each
+    repeat; reported as the peak itself and as the growth over the RSS at the reset. This is
+    process RSS: the other framework's resident weights and buffers are in the peak (not in
+    the growth), and memory that the allocator kept from earlier phases can hide growth, so
+    the growth is a lower bound. cdrl's compile is reported separately;
+  * model-FLOP utilisation: model FLOPs per step / median step time / matmul peak.
+    Model FLOPs are ANALYTIC: the multiply-adds (x2) of every convolution, transposed
+    convolution (counted on its un-dilated input), LSTM and FC matmul per frame, times 3 for
+    the forward and backward passes (elementwise work not counted). XLA's own count
+    (`jax.jit(...).lower(...).compile().cost_analysis()['flops']`) is reported alongside for
+    reference only: it counts the body of a `lax.scan` once, not T times (so for
+    closed_loop_minus, whose whole network is inside the scan, it is about 1/T of the work)
+    and counts the zeros of the dilated input of a transposed convolution. The peak is the
+    best of several 2048x2048 float32 matmuls, measured in the same run in jax and in
+    torch; MFU uses the larger of the two.
+
+Online training of `final_proposal` (cdrl only: there is NO torch reference for it). One
+`cdrl.online.online_step` is a jitted program that acts in B (= each `--batches` entry)
+built-in games (simulated and rendered at 150x150, resized to the preset's image size) for T
+steps and learns from them, so its frames/s (frames = num_envs * unroll per update) include
+the games and are not comparable with the offline figures. Its compile time (first call) is
+reported too (about a minute on 2 cores even for the small preset). `--online-batches` picks
+the numbers of games (default: `--batches`; `--quick`: the smallest), `--skip-online` leaves
+it out.
+
+Torch threads: `torch.set_num_threads(os.cpu_count())` unless `--torch-threads`. On a machine
+that other processes keep busy, torch with as many threads as cores can be many times slower
+than with one (its OpenMP threads wait for each other): run on an idle machine, or compare
+with `--torch-threads 1`.
+
+Prints a table, then ONE JSON line with every figure. Wall-clock figures depend on what else
+runs on the machine (the JSON records the load average).
+
+    .venv/bin/python benchmarks/train_throughput.py                 # thesis preset
+    .venv/bin/python benchmarks/train_throughput.py --quick         # small preset, T=8, B=2, few steps
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import gc
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+MiB = 1024 * 1024
+# Building the initial weights is set-up, not measured: compile it with LLVM optimisation
+# off (the truncated-normal initialisers otherwise take ~30 s to compile on 2 cores).
+_FAST_COMPILE = {"xla_backend_optimization_level": 0}
+
+
+def _parse() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--variants", nargs="+", default=["main", "closed_loop_minus"],
+                    choices=["main", "closed_loop_minus"])
+    ap.add_argument("--batches", type=int, nargs="+", default=None, help="batch sizes B (default 1 8; --quick: 2)")
+    ap.add_argument("--preset", default=None, help="architecture preset (default thesis; --quick: small)")
+    ap.add_argument("--unroll", type=int, default=None, help="truncated-BPTT length T (default 32; --quick: 8)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed repeats per framework (default 5)")
+    ap.add_argument("--steps-per-repeat", type=int, default=None, help="train steps per repeat (default 4)")
+    ap.add_argument("--torch-warmup", type=int, default=None, help="torch warm-up steps (default 2)")
+    ap.add_argument("--matmul-repeats", type=int, default=None, help="matmuls timed for the peak (default 10)")
+    ap.add_argument("--torch-threads", type=int, default=None,
+                    help="torch.set_num_threads (default os.cpu_count(); on a machine shared with other "
+                         "processes fewer threads can be much faster: torch's OpenMP threads wait for each other)")
+    ap.add_argument("--quick", action="store_true", help="small preset, few steps (a smoke test)")
+    ap.add_argument("--online-batches", type=int, nargs="+", default=None,
+                    help="numbers of games for final_proposal's online training (default: --batches; --quick: the smallest of --batches)")
+    ap.add_argument("--skip-online", action="store_true", help="leave out final_proposal's online training")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None, help="also write the JSON to this file")
+    args = ap.parse_args()
+    quick = args.quick
+    defaults = {
+        "batches": [2] if quick else [1, 8],
+        "preset": "small" if quick else "thesis",
+        "repeats": 3 if quick else 5,
+        "steps_per_repeat": 2 if quick else 4,
+        "torch_warmup": 1 if quick else 2,
+        "unroll": 8 if quick else 32,
+        "matmul_repeats": 3 if quick else 10,
+    }
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    if args.online_batches is None:
+        args.online_batches = [min(args.batches)] if quick else list(args.batches)
+    return args
+
+
+# --------------------------------------------------------------------------- memory
+
+
+_libc = None
+
+
+def _trim() -> None:
+    """Return freed heap memory to the OS so that a phase's growth shows in its peak."""
+    global _libc
+    gc.collect()
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL("libc.so.6")
+        _libc.malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _status_kib(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+class PeakRSS:
+    """Peak RSS of a phase: reset VmHWM on entry (Linux clear_refs), read it on exit."""
+
+    def __enter__(self):
+        _trim()
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")
+            self.ok = True
+        except OSError:
+            self.ok = False
+        self.start_kib = _status_kib("VmRSS")
+        return self
+
+    def __exit__(self, *exc):
+        hwm = _status_kib("VmHWM") if self.ok else None
+        self.peak_mib = None if hwm is None else hwm * 1024 / MiB
+        self.growth_mib = None if hwm is None or self.start_kib is None else (hwm - self.start_kib) * 1024 / MiB
+        return False
+
+
+def _worst(phases: list[PeakRSS]) -> tuple[float | None, float | None]:
+    peaks = [p.peak_mib for p in phases if p.peak_mib is not None]
+    growths = [p.growth_mib for p in phases if p.growth_mib is not None]
+    return (max(peaks) if peaks else None, max(growths) if growths else None)
+
+
+# --------------------------------------------------------------------------- FLOPs
+
+
+def forward_flops_per_frame(arch) -> float:
+    """Analytic multiply-add FLOPs (x2) of one frame through E_o, LSTM, FC and D_o."""
+    flops, size, c_in = 0.0, arch.image_size, 1
+    for spec in arch.encoder:
+        size = spec.out_size(size)
+        flops += 2.0 * size * size * spec.kernel ** 2 * c_in * spec.features
+        c_in = spec.features
+    chans = [1] + [s.features for s in arch.encoder]
+    size = 1
+    for i, spec in enumerate(reversed(arch.encoder)):
+        c_in, c_out = chans[-1 - i], chans[-2 - i]
+        flops += 2.0 * size * size * spec.kernel ** 2 * c_in * c_out  # each input pixel x the kernel
+        size = spec.transposed_out_size(size)
+    H, code = arch.lstm_size, arch.obs_code
+    flops += 2.0 * (code + H) * 4 * H + 2.0 * H * code
+    return flops
+
+
+def matmul_peak(repeats: int, n: int = 2048) -> dict:
+    """Best-of-`repeats` GFLOP/s of an n x n float32 matmul in jax and in torch."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    import torch
+
+    rng = np.random.default_rng(0)
+    a_np, b_np = (rng.standard_normal((n, n), dtype=np.float32) for _ in range(2))
+    flops = 2.0 * n ** 3
+    mm = jax.jit(jnp.matmul)
+    a, b = jnp.asarray(a_np), jnp.asarray(b_np)
+    mm(a, b).block_until_ready()
+    best_j = min(_timed(lambda: mm(a, b).block_until_ready()) for _ in range(repeats))
+    at, bt = torch.from_numpy(a_np), torch.from_numpy(b_np)
+    torch.mm(at, bt)
+    best_t = min(_timed(lambda: torch.mm(at, bt)) for _ in range(repeats))
+    return {"n": n, "jax_gflops": flops / best_j / 1e9, "torch_gflops": flops / best_t / 1e9}
+
+
+def _timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------- offline training
+
+
+def _initial_params(variant, seed: int):
+    import jax
+
+    key = jax.random.PRNGKey(seed)
+    return jax.jit(variant.init).lower(key).compile(compiler_options=_FAST_COMPILE)(key)
+
+
+def _fresh_state(variant, params, batch: int, hp):
+    """What `cdrl.train.init_state` builds, from given parameters (copied: the step donates)."""
+    import jax
+    import jax.numpy as jnp
+
+    from cdrl import train
+
+    params = jax.tree.map(jnp.array, params)
+    return train.TrainState(params=params, opt_state=train.make_optimizer(hp).init(params),
+                            carry=variant.init_carry(batch), step=jnp.zeros((), jnp.int32))
+
+
+def _chunk_arrays(arch, T: int, B: int, seed: int):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    s = arch.image_size
+    frames = rng.integers(0, 256, (T + 1, B, s, s), dtype=np.uint8)
+    is_first = np.zeros((T, B), bool)
+    is_first[0] = True
+    return frames[:-1], frames[1:], is_first
+
+
+def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
+    import jax.numpy as jnp
+    import numpy as np
+    import torch
+
+    import torch_reference as tr
+    from cdrl import train, variants
+
+    v = variants.make_variant(name, arch)
+    hp = train.HParams.create(v, lr=0.1, momentum=0.9)
+    state = _fresh_state(v, params, B, hp)
+    obs, next_obs, is_first = _chunk_arrays(arch, T, B, args.seed)
+    chunk = train.Chunk(obs=jnp.asarray(obs), next_obs=jnp.asarray(next_obs),
+                        action=jnp.zeros((T, B, arch.action_dim), jnp.float32),
+                        reward=jnp.zeros((T, B), jnp.float32), is_first=jnp.asarray(is_first))
+
+    model = tr.load_cdrl_params(tr.TorchModel(arch, name), params)
+    opt = tr.make_optimizer(model, lr=0.1, momentum=0.9)
+    t_obs, t_next, t_first = (torch.from_numpy(np.array(x)) for x in (obs, next_obs, is_first))
+    t_carry = model.init_carry(B)
+
+    # cdrl: the first call compiles.
+    with PeakRSS() as compile_mem:
+        t0 = time.perf_counter()
+        state, metrics = train.train_step(v, state, hp, chunk)
+        float(metrics["loss"])
+        compile_s = time.perf_counter() - t0
+    # The executable is cached: this lowers again but does not compile again.
+    cost = train.train_step.lower(v, state, hp, chunk).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+
+    def torch_step(carry):
+        loss, carry, _ = tr.train_step(model, opt, carry, t_obs, t_next, t_first, monitor=True)
+        loss.item()
+        return carry
+
+    for _ in range(args.torch_warmup):
+        t_carry = torch_step(t_carry)
+
+    times = {"cdrl": [], "torch": []}
+    mem = {"cdrl": [], "torch": []}
+    losses = {}
+    n = args.steps_per_repeat
+    for _ in range(args.repeats):
+        with PeakRSS() as m:
+            t0 = time.perf_counter()
+            for _ in range(n):
+                state, metrics = train.train_step(v, state, hp, chunk)
+                losses["cdrl"] = float(metrics["loss"])
+            times["cdrl"].append((time.perf_counter() - t0) / n)
+        mem["cdrl"].append(m)
+        with PeakRSS() as m:
+            t0 = time.perf_counter()
+            for _ in range(n):
+                t_carry = torch_step(t_carry)
+            times["torch"].append((time.perf_counter() - t0) / n)
+        mem["torch"].append(m)
+    if bool(metrics["diverged"]):
+        print(f"warning: cdrl step diverged ({name}, B={B}); the timing still holds", file=sys.stderr)
+
+    frames = T * B
+    model_flops = 3.0 * forward_flops_per_frame(arch) * frames
+    out = {"variant": name, "batch": B, "unroll": T, "frames_per_step": frames,
+           "model_flops_per_step": model_flops, "xla_flops_per_step": xla_flops}
+    for fw in ("cdrl", "torch"):
+        step_s = statistics.median(times[fw])
+        peak, growth = _worst(mem[fw])
+        out[fw] = {
+            "frames_per_s": frames / step_s,
+            "frames_per_s_repeats": [frames / t for t in times[fw]],
+            "step_s": step_s,
+            "model_gflops_per_s": model_flops / step_s / 1e9,
+            "peak_rss_mib": peak,
+            "peak_growth_mib": growth,
+        }
+    out["cdrl"]["compile_s"] = compile_s
+    out["cdrl"]["compile_peak_rss_mib"] = compile_mem.peak_mib
+    out["cdrl"]["compile_peak_growth_mib"] = compile_mem.growth_mib
+    out["ratio_cdrl_over_torch"] = out["cdrl"]["frames_per_s"] / out["torch"]["frames_per_s"]
+    return out
+
+
+# --------------------------------------------------------------------------- online training
+
+
+def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
+    import jax
+
+    from cdrl.online import OnlineConfig, init_online, online_step
+    from cdrl.online_run import hparams, make_game
+    from cdrl.run import RunConfig
+    from cdrl.variants import make_variant
+
+    cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed)
+    variant = make_variant(cfg.variant, cfg.arch)
+    game, env_params = make_game(cfg.env)
+    env_params = env_params.replace(max_steps=cfg.episode_steps)
+    ocfg = OnlineConfig(num_envs=B, unroll=T)
+    hp = hparams(cfg)
+    key = jax.random.PRNGKey(cfg.seed)
+    # Set-up (not measured): init_online compiled with LLVM optimisation off, see _FAST_COMPILE.
+    init = jax.jit(init_online, static_argnums=(0, 1, 3))
+    state = init.lower(variant, game, env_params, ocfg, key, hp).compile(compiler_options=_FAST_COMPILE)(
+        env_params, key, hp)
+
+    with PeakRSS() as compile_mem:
+        t0 = time.perf_counter()
+        state, metrics = online_step(variant, game, ocfg, state, hp, env_params)
+        float(metrics["loss"])
+        compile_s = time.perf_counter() - t0
+    times, mem = [], []
+    n = args.steps_per_repeat
+    for _ in range(args.repeats):
+        with PeakRSS() as m:
+            t0 = time.perf_counter()
+            for _ in range(n):
+                state, metrics = online_step(variant, game, ocfg, state, hp, env_params)
+                float(metrics["loss"])
+            times.append((time.perf_counter() - t0) / n)
+        mem.append(m)
+    frames = B * T
+    step_s = statistics.median(times)
+    peak, growth = _worst(mem)
+    return {"variant": "final_proposal", "num_envs": B, "unroll": T, "frames_per_step": frames,
+            "frames_per_s": frames / step_s, "frames_per_s_repeats": [frames / t for t in times],
+            "step_s": step_s, "compile_s": compile_s, "compile_peak_rss_mib": compile_mem.peak_mib,
+            "peak_rss_mib": peak, "peak_growth_mib": growth}
+
+
+# --------------------------------------------------------------------------- report
+
+
+def _fmt(x, spec=".0f"):
+    return "-" if x is None else format(x, spec)
+
+
+def print_table(res: dict) -> None:
+    peak = res["matmul_peak_gflops"]
+    print(f"preset {res['preset']}, T={res['unroll']}, {res['cpu_count']} CPUs ({res['cpu']}), "
+          f"load avg at start {res['load_avg_start']:.2f}, torch threads {res['torch_threads']}")
+    if "warning" in res:
+        print("WARNING: " + res["warning"])
+    print(f"matmul peak 2048x2048 float32: jax {res['matmul']['jax_gflops']:.1f} GFLOP/s, "
+          f"torch {res['matmul']['torch_gflops']:.1f} GFLOP/s (MFU against {peak:.1f})")
+    head = (f"{'variant':18s} {'B':>3s} {'fw':5s} {'frames/s':>9s} {'ratio':>6s} {'step ms':>9s} "
+            f"{'GFLOP/s':>8s} {'MFU':>6s} {'compile s':>9s} {'peak MiB':>9s} {'growth MiB':>10s}")
+    print(head)
+    print("-" * len(head))
+    for r in res["configs"]:
+        for fw in ("cdrl", "torch"):
+            x = r[fw]
+            ratio = f"{r['ratio_cdrl_over_torch']:6.2f}" if fw == "cdrl" else f"{'':6s}"
+            compile_s = _fmt(x.get("compile_s"), ".1f")
+            print(f"{r['variant']:18s} {r['batch']:3d} {fw:5s} {x['frames_per_s']:9.1f} {ratio} "
+                  f"{1e3 * x['step_s']:9.1f} {x['model_gflops_per_s']:8.2f} {100 * x['mfu']:5.1f}% "
+                  f"{compile_s:>9s} {_fmt(x['peak_rss_mib']):>9s} {_fmt(x['peak_growth_mib']):>10s}")
+    print("model FLOPs: analytic (convs, transposed convs, LSTM, FC; x3 for training); "
+          "XLA cost_analysis flops per step (scan body once): "
+          + ", ".join(f"{r['variant']}/B{r['batch']}: {r['xla_flops_per_step'] / 1e9:.2f} G "
+                      f"(analytic {r['model_flops_per_step'] / 1e9:.2f} G)" for r in res["configs"]))
+    for r in res.get("online", []):
+        print(f"online final_proposal (cdrl only, games included) num_envs {r['num_envs']:3d}: "
+              f"{r['frames_per_s']:9.1f} frames/s, step {1e3 * r['step_s']:.1f} ms, "
+              f"compile {r['compile_s']:.1f} s, peak {_fmt(r['peak_rss_mib'])} MiB")
+
+
+def main() -> None:
+    args = _parse()
+    import jax
+
+    jax.config.update("jax_enable_compilation_cache", False)  # compile times are real compiles
+    import torch
+
+    torch.set_num_threads(args.torch_threads or os.cpu_count())
+    from cdrl import config
+
+    arch = config.preset(args.preset)
+    T = args.unroll
+    res = {
+        "benchmark": "train_throughput", "preset": args.preset, "image_size": arch.image_size,
+        "lstm_size": arch.lstm_size, "unroll": T, "batches": args.batches, "repeats": args.repeats,
+        "steps_per_repeat": args.steps_per_repeat, "quick": args.quick, "online_batches": args.online_batches,
+        "cpu_count": os.cpu_count(), "cpu": _cpu_name(), "torch_threads": torch.get_num_threads(),
+        "jax_version": jax.__version__, "torch_version": torch.__version__,
+        "jax_device": str(jax.devices()[0].device_kind), "python": platform.python_version(),
+        "load_avg_start": os.getloadavg()[0], "persistent_compilation_cache": False,
+        "flops_source": "analytic (x3 forward); xla_flops_per_step from compiled cost_analysis, scan body counted once",
+        "memory": "process RSS (VmHWM after clear_refs); growth = peak - RSS at reset",
+    }
+    if res["load_avg_start"] > 0.5 * os.cpu_count():
+        res["warning"] = (f"machine busy at start (load average {res['load_avg_start']:.1f} on {os.cpu_count()} CPUs): "
+                          f"timings are unreliable, torch with {res['torch_threads']} threads especially")
+        print("warning: " + res["warning"], file=sys.stderr, flush=True)
+    res["matmul"] = matmul_peak(args.matmul_repeats)
+    res["matmul_peak_gflops"] = max(res["matmul"]["jax_gflops"], res["matmul"]["torch_gflops"])
+
+    from cdrl import variants
+
+    params_by_shape = {}
+    res["configs"] = []
+    for name in args.variants:
+        v = variants.make_variant(name, arch)
+        shape_key = str(jax.eval_shape(v.init, jax.random.PRNGKey(args.seed)))
+        if shape_key not in params_by_shape:  # main and closed_loop_minus share one parameter tree
+            params_by_shape[shape_key] = _initial_params(v, args.seed)
+        for B in args.batches:
+            r = bench_offline(name, arch, params_by_shape[shape_key], T, B, args)
+            for fw in ("cdrl", "torch"):
+                r[fw]["mfu"] = r[fw]["model_gflops_per_s"] / res["matmul_peak_gflops"]
+            res["configs"].append(r)
+            print(f"  {name} B={B}: cdrl {r['cdrl']['frames_per_s']:.1f} frames/s, torch "
+                  f"{r['torch']['frames_per_s']:.1f} frames/s, cdrl compile {r['cdrl']['compile_s']:.1f} s",
+                  file=sys.stderr, flush=True)
+    res["online"] = []
+    if not args.skip_online:
+        for B in args.online_batches:
+            r = bench_online(args.preset, B, T, args)
+            res["online"].append(r)
+            print(f"  online final_proposal num_envs={B}: {r['frames_per_s']:.1f} frames/s, "
+                  f"compile {r['compile_s']:.1f} s", file=sys.stderr, flush=True)
+    res["load_avg_end"] = os.getloadavg()[0]
+    print_table(res)
+    line = json.dumps(_rounded(res))
+    if args.out:
+        args.out.write_text(line + "\n")
+    print(line)
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _rounded(x):
+    if isinstance(x, float):
+        return float(f"{x:.4g}")
+    if isinstance(x, dict):
+        return {k: _rounded(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_rounded(v) for v in x]
+    return x
+
+
+if __name__ == "__main__":
+    main()
