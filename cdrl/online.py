@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import optax
 
 from cdrl.monitor import NormRatioState, norm_ratio_monitor
-from cdrl.train import TrainState, all_finite, run_once
+from cdrl.train import TrainState, all_finite, run_once, watched_groups
 from cdrl.variants import StepInput, Variant, bce_with_logits
 
 SCOPES = ("controller", "all")
@@ -198,7 +198,8 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
     monitor: NormRatioState = opt_state[0]
     ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
     finite = jnp.isfinite(model_loss) & all_finite(grads) & all_finite(new_params)
-    max_ratio = jnp.max(jnp.where(jnp.isfinite(ratios), ratios, jnp.inf))
+    watched = jnp.where(watched_groups(params), jnp.where(jnp.isfinite(ratios), ratios, jnp.inf), 0.0)
+    max_ratio = jnp.max(watched)
     diverged = ~finite | (max_ratio > hp.diverge_threshold)
     train = new_state.train.replace(params=new_params, opt_state=opt_state, step=state.train.step + 1)
     updated = new_state.replace(train=train)
@@ -218,7 +219,7 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
         "ascent_on": active,
         "ratios": ratios,
         "max_ratio": max_ratio,
-        "worst_group": jnp.argmax(jnp.where(jnp.isfinite(ratios), ratios, jnp.inf)),
+        "worst_group": jnp.argmax(watched),
         "finite": finite,
         "diverged": diverged,
     }

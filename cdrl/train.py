@@ -85,7 +85,10 @@ RUN_ONCE = {"xla_backend_optimization_level": 0}
 
 
 def run_once(fn, *args, static_argnums: tuple[int, ...] = ()):
-    """`jax.jit(fn, static_argnums)(*args)`, compiled for a single call (see `RUN_ONCE`)."""
+    """`jax.jit(fn, static_argnums)(*args)`, compiled for a single call (see `RUN_ONCE`).
+    Under a transformation (`jax.eval_shape`, an outer `jit`) it is `fn(*args)`."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+        return fn(*args)
     compiled = jax.jit(fn, static_argnums=static_argnums).lower(*args).compile(compiler_options=RUN_ONCE)
     return compiled(*[a for i, a in enumerate(args) if i not in static_argnums])
 
