@@ -4,7 +4,7 @@ PYTHON ?= python3.11
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install bench notebooks clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,10 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/env_throughput.py --quick
 	$(VENV)/bin/python benchmarks/train_throughput.py --quick
+
+# Re-run the notebooks at the full budget and store their outputs (tens of minutes on 2 cores).
+notebooks: $(STAMP)
+	for nb in notebooks/0*.ipynb; do CDRL_NOTEBOOK_BUDGET=full $(VENV)/bin/jupyter execute --inplace --timeout=-1 $$nb || exit 1; done
 
 clean:
 	rm -rf $(VENV) runs
