@@ -200,14 +200,11 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
     diverged: dict[int, dict] = {}
 
-    def save(i: int, step: int, state: TrainState) -> None:
+    def save(step: int, i: int, state: TrainState) -> None:
         c = cfgs[i]
         meta = {"step": step, "config": dataclasses.asdict(c), "stream": streams[c.seed].state_dict(),
                 "key": np.asarray(jax.random.PRNGKey(c.seed)).tolist()}
         Checkpoints(dirs[i] / "checkpoints", keep=c.keep_checkpoints).save(step, state, meta)
-
-    def on_diverge(step: int, i: int, state: TrainState) -> None:
-        save(i, step, state)
 
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(total=base.steps, disable=not show, desc=f"sweep {base.variant} x{len(cfgs)}", unit="step")
@@ -233,13 +230,13 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
         bar.update(1)
         bar.set_postfix(loss=f"{float(np.mean(metrics['loss'])):.4f}", fps=f"{sweep_fps[-1]:.0f}")
 
-    states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge)
+    states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge=save)
     bar.close()
     rows = []
     for i, (c, d, log) in enumerate(zip(cfgs, dirs, logs)):
         log.append(pending[i])
         if alive[i]:
-            save(i, base.steps, take(states, i))
+            save(base.steps, i, take(states, i))
         rows.append(_result_row(variant, c, d, take(states, i).params, episodes[c.seed], diverged.get(i)))
     # The first step compiles; report the steady state.
     steady = sweep_fps[1:] or sweep_fps
