@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cdrl.run import RunConfig, train_run
+from cdrl.runs.config import RunConfig
+from cdrl.runs.train import train_run
 
 RUNS = [
     ("final_proposal", "controller"),

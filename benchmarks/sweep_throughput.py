@@ -1,11 +1,11 @@
 """Sweep throughput: N configurations as one vmapped program against the same N runs one
 after another.
 
-Both sides run the same train step (`cdrl.train.train_step_fn`: the variant, SGD with
+Both sides run the same train step (`cdrl.training.step.train_step_fn`: the variant, SGD with
 momentum, the norm-ratio monitor, the divergence selects) on the same synthetic chunks:
   * sequential: N separate states, each advanced by the jitted single-config `train_step`
     (one compiled program shared by all N), config after config;
-  * sweep: one stacked state advanced by `cdrl.sweep.sweep_step` (one compiled program).
+  * sweep: one stacked state advanced by `cdrl.runs.sweep.sweep_step` (one compiled program).
 After warm-up (both compile), `--repeats` alternating repeats of `--steps` steps per config;
 reported: training frames/s of each (all configs' frames; median over repeats), their ratio,
 compile times. One JSON line at the end.
@@ -23,11 +23,12 @@ import time
 import jax
 import numpy as np
 
-from cdrl import config as configs
-from cdrl.run import RunConfig
-from cdrl.sweep import Grid, init_sweep, sweep_step, take
-from cdrl.train import Chunk, train_step
-from cdrl.variants import make_variant
+from cdrl.data.stream import Chunk
+from cdrl.models import make_variant
+from cdrl.models.arch import preset
+from cdrl.runs.config import RunConfig
+from cdrl.runs.sweep import Grid, init_sweep, sweep_step, take
+from cdrl.training.step import train_step
 
 
 def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
@@ -49,7 +50,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="alternating repeats (default: 3)")
     args = parser.parse_args(argv)
 
-    arch = configs.preset(args.preset)
+    arch = preset(args.preset)
     variant = make_variant(args.variant, arch)
     n, T, B = args.configs, args.unroll, args.batch
     # An lr x momentum grid of N points (2 momenta when N is even).

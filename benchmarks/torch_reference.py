@@ -5,7 +5,7 @@ and data give the same loss, gradients and carries: tests/test_torch_reference.p
 give the training-throughput benchmark a conventional baseline
 (benchmarks/train_throughput.py).
 
-For any `cdrl.config.ArchConfig`:
+For any `cdrl.models.arch.ArchConfig`:
 
 - observation encoder: the `arch.encoder` conv table (`nn.Conv2d`), SELU after every layer;
 - observation decoder: its mirror of `nn.ConvTranspose2d` (PyTorch padding semantics),
@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cdrl.config import ArchConfig
+from cdrl.models.arch import ArchConfig
 
 VARIANTS = ("main", "closed_loop_minus")
 
@@ -142,14 +142,14 @@ class TorchModel(nn.Module):
 
 
 def as_float(frames: torch.Tensor) -> torch.Tensor:
-    """uint8 frames to [0, 1]; float frames unchanged (cdrl.train.as_float)."""
+    """uint8 frames to [0, 1]; float frames unchanged (cdrl.data.frames.as_float)."""
     if frames.dtype == torch.uint8:
         return frames.to(torch.float32) / 255.0
     return frames.to(torch.float32)
 
 
 def chunk_loss(model: TorchModel, carry, obs, next_obs, is_first):
-    """cdrl.train.chunk_loss: BCE of the chunk's predictions from `carry` (cut: TBPTT).
+    """cdrl.training.step.chunk_loss: BCE of the chunk's predictions from `carry` (cut: TBPTT).
 
     Time-major `obs`, `next_obs` `[T, B, H, W]` (float in [0, 1] or uint8), `is_first`
     `[T, B]` bool. Returns `(loss, final_carry)`.

@@ -2,7 +2,7 @@
 
 For each variant (`main`, `closed_loop_minus`) and batch size B (1 and 8), one process builds
 
-  * cdrl: `cdrl.train.train_step` (jitted, the variant a static argument, the state donated;
+  * cdrl: `cdrl.training.step.train_step` (jitted, the variant a static argument, the state donated;
     SGD lr 0.1, momentum 0.9 with the divergence monitor and the keep-the-old-state-on-
     divergence selects, exactly what `cdrl train` runs), and
   * torch: `benchmarks/torch_reference.py` (eager PyTorch, same network, same loss,
@@ -37,7 +37,7 @@ its loss back to the host (as a training loop that logs does). Reported per conf
     torch; MFU uses the larger of the two.
 
 Online training of `final_proposal` (cdrl only: there is NO torch reference for it). One
-`cdrl.online.online_step` is a jitted program that acts in B (= each `--batches` entry)
+`cdrl.training.online.online_step` is a jitted program that acts in B (= each `--batches` entry)
 built-in games (simulated and rendered at 150x150, resized to the preset's image size) for T
 steps and learns from them, so its frames/s (frames = num_envs * unroll per update) include
 the games and are not comparable with the offline figures. Its compile time (first call) is
@@ -232,15 +232,16 @@ def _initial_params(variant, seed: int):
 
 
 def _fresh_state(variant, params, batch: int, hp):
-    """What `cdrl.train.init_state` builds, from given parameters (copied: the step donates)."""
+    """What `cdrl.training.step.init_state` builds, from given parameters (copied: the step donates)."""
     import jax
     import jax.numpy as jnp
 
-    from cdrl import train
+    from cdrl.training.optim import make_optimizer
+    from cdrl.training.step import TrainState
 
     params = jax.tree.map(jnp.array, params)
-    return train.TrainState(params=params, opt_state=train.make_optimizer(hp).init(params),
-                            carry=variant.init_carry(batch), step=jnp.zeros((), jnp.int32))
+    return TrainState(params=params, opt_state=make_optimizer(hp).init(params),
+                      carry=variant.init_carry(batch), step=jnp.zeros((), jnp.int32))
 
 
 def _chunk_arrays(arch, T: int, B: int, seed: int):
@@ -260,13 +261,16 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
     import torch
 
     import torch_reference as tr
-    from cdrl import train, variants
+    from cdrl.data.stream import Chunk
+    from cdrl.models import make_variant
+    from cdrl.training.optim import HParams
+    from cdrl.training.step import train_step
 
-    v = variants.make_variant(name, arch)
-    hp = train.HParams.create(v, lr=0.1, momentum=0.9)
+    v = make_variant(name, arch)
+    hp = HParams.create(v, lr=0.1, momentum=0.9)
     state = _fresh_state(v, params, B, hp)
     obs, next_obs, is_first = _chunk_arrays(arch, T, B, args.seed)
-    chunk = train.Chunk(obs=jnp.asarray(obs), next_obs=jnp.asarray(next_obs),
+    chunk = Chunk(obs=jnp.asarray(obs), next_obs=jnp.asarray(next_obs),
                         action=jnp.zeros((T, B, arch.action_dim), jnp.float32),
                         reward=jnp.zeros((T, B), jnp.float32), is_first=jnp.asarray(is_first))
 
@@ -278,11 +282,11 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
     # cdrl: the first call compiles.
     with PeakRSS() as compile_mem:
         t0 = time.perf_counter()
-        state, metrics = train.train_step(v, state, hp, chunk)
+        state, metrics = train_step(v, state, hp, chunk)
         float(metrics["loss"])
         compile_s = time.perf_counter() - t0
     # The executable is cached: this lowers again but does not compile again.
-    cost = train.train_step.lower(v, state, hp, chunk).compile().cost_analysis()
+    cost = train_step.lower(v, state, hp, chunk).compile().cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
 
@@ -302,7 +306,7 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
         with PeakRSS() as m:
             t0 = time.perf_counter()
             for _ in range(n):
-                state, metrics = train.train_step(v, state, hp, chunk)
+                state, metrics = train_step(v, state, hp, chunk)
                 losses["cdrl"] = float(metrics["loss"])
             times["cdrl"].append((time.perf_counter() - t0) / n)
         mem["cdrl"].append(m)
@@ -343,15 +347,15 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
 def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
     import jax
 
-    from cdrl.online import OnlineConfig, init_online, online_step
-    from cdrl.online_run import hparams, make_game
-    from cdrl.run import RunConfig
-    from cdrl.variants import make_variant
+    from cdrl.models import make_variant
+    from cdrl.runs.config import RunConfig
+    from cdrl.runs.online import hparams
+    from cdrl.runs.sources import run_game
+    from cdrl.training.online import OnlineConfig, init_online, online_step
 
     cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed)
     variant = make_variant(cfg.variant, cfg.arch)
-    game, env_params = make_game(cfg.env)
-    env_params = env_params.replace(max_steps=cfg.episode_steps)
+    game, env_params = run_game(cfg)
     ocfg = OnlineConfig(num_envs=B, unroll=T)
     hp = hparams(cfg)
     key = jax.random.PRNGKey(cfg.seed)
@@ -429,9 +433,9 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(args.torch_threads or os.cpu_count())
-    from cdrl import config
+    from cdrl.models.arch import preset
 
-    arch = config.preset(args.preset)
+    arch = preset(args.preset)
     T = args.unroll
     res = {
         "benchmark": "train_throughput", "preset": args.preset, "image_size": arch.image_size,
@@ -451,12 +455,12 @@ def main() -> None:
     res["matmul"] = matmul_peak(args.matmul_repeats)
     res["matmul_peak_gflops"] = max(res["matmul"]["jax_gflops"], res["matmul"]["torch_gflops"])
 
-    from cdrl import variants
+    from cdrl.models import make_variant
 
     params_by_shape = {}
     res["configs"] = []
     for name in args.variants:
-        v = variants.make_variant(name, arch)
+        v = make_variant(name, arch)
         shape_key = str(jax.eval_shape(v.init, jax.random.PRNGKey(args.seed)))
         if shape_key not in params_by_shape:  # main and closed_loop_minus share one parameter tree
             params_by_shape[shape_key] = _initial_params(v, args.seed)

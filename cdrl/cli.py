@@ -1,6 +1,6 @@
 """The `cdrl` command line: collect, train, sweep, lr-search, eval, plot, variants.
 
-Every `train` option is a field of `cdrl.run.RunConfig`; its help text and default come
+Every `train` option is a field of `cdrl.runs.config.RunConfig`; its help text and default come
 from there, so the CLI and the Python API cannot drift apart.
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from cdrl.run import RunConfig
+from cdrl.runs.config import RunConfig
 
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
@@ -40,7 +40,7 @@ def _options(args, skip: tuple[str, ...] = ()) -> dict:
 
 
 def _cmd_train(args) -> int:
-    from cdrl.run import train_run
+    from cdrl.runs.train import train_run
 
     options = _options(args)
     try:
@@ -56,7 +56,8 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    from cdrl.sweep import GRID_FIELDS, Grid, format_results, sweep_run
+    from cdrl.analysis.plots import plot_sweep
+    from cdrl.runs.sweep import GRID_FIELDS, Grid, format_results, sweep_run
 
     grid = {name: tuple(getattr(args, name)) for name in GRID_FIELDS if hasattr(args, name)}
     try:
@@ -64,13 +65,14 @@ def _cmd_sweep(args) -> int:
     except (ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"cdrl sweep: {exc}", file=sys.stderr)
         return 2
+    plot_sweep(args.run_dir)
     print(format_results(rows))
     print(json.dumps(json.loads((Path(args.run_dir) / "results.json").read_text())))
     return 0
 
 
 def _cmd_lr_search(args) -> int:
-    from cdrl.sweep import lr_search
+    from cdrl.runs.sweep import lr_search
 
     try:
         result = lr_search(RunConfig(**_options(args, skip=("lr", "steps", "diverge_threshold"))),
@@ -97,7 +99,7 @@ def _cmd_eval(args) -> int:
     if not args.run_dirs:
         print("cdrl eval: give RUN_DIR(s), or --policy RUN_DIR", file=sys.stderr)
         return 2
-    from cdrl.report import eval_runs
+    from cdrl.analysis.report import eval_runs
 
     try:
         rows = eval_runs([Path(p) for p in args.run_dirs], episodes=args.episodes)
@@ -109,8 +111,8 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_eval_policy(args) -> int:
-    from cdrl.online_run import eval_policy_run
-    from cdrl.play import format_table
+    from cdrl.evaluation.play import format_table
+    from cdrl.runs.online import eval_policy_run
 
     try:
         rows = eval_policy_run(Path(args.policy), episodes=args.episodes)
@@ -123,7 +125,7 @@ def _cmd_eval_policy(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from cdrl.plots import plot_runs
+    from cdrl.analysis.plots import plot_runs
 
     try:
         written = plot_runs([Path(p) for p in args.run_dirs], out_dir=Path(args.out) if args.out else None,
@@ -137,10 +139,10 @@ def _cmd_plot(args) -> int:
 
 
 def _cmd_collect(args) -> int:
-    from cdrl import dataset
+    from cdrl.data import store
 
     try:
-        dataset.collect(Path(args.out), args.episodes, policy=args.policy, seed=args.seed,
+        store.collect(Path(args.out), args.episodes, policy=args.policy, seed=args.seed,
                         max_steps=args.episode_steps, obs_size=args.obs_size)
     except (ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
@@ -150,7 +152,7 @@ def _cmd_collect(args) -> int:
 
 
 def _cmd_variants(args) -> int:
-    from cdrl.variants import VARIANTS
+    from cdrl.models import VARIANTS
 
     for name, cls in sorted(VARIANTS.items()):
         print(f"{name:20s} {(cls.__doc__ or '').strip().splitlines()[0] if cls.__doc__ else ''}")

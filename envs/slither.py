@@ -90,8 +90,6 @@ class SlitherParams:
       opp_min_length, opp_max_length: range of opponents' lengths at (re)spawn.
       respawn_distance: least distance of a (re)spawned opponent from the player.
       max_steps: steps after which the episode is truncated.
-      left_bonus: extra reward for every step that turns left (left without right); 0 in
-        the game proper, a trivially learnable reward for testing controllers.
     """
 
     speed: float = 6.0
@@ -116,7 +114,6 @@ class SlitherParams:
     opp_max_length: float = 30.0
     respawn_distance: float = 400.0
     max_steps: int = 1000
-    left_bonus: float = 0.0
 
 
 @struct.dataclass
@@ -520,8 +517,7 @@ class Slither:
             time=time,
             terminated=terminated,
         )
-        left_only = pressed[1] & ~pressed[0]
-        reward = length[0] - state.length[0] + params.left_bonus * left_only
+        reward = length[0] - state.length[0]
         truncated = (time >= params.max_steps) & ~terminated
         info = {"length": length[0], "opponents_died": jnp.sum(died)}
         return new_state, reward, terminated, truncated, info

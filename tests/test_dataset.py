@@ -1,4 +1,4 @@
-"""Tests of the on-disk episode data set (cdrl.dataset)."""
+"""Tests of the on-disk episode data set (cdrl.data.store)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import jax
 import numpy as np
 import pytest
 
-from cdrl import dataset as ds
-from cdrl.dataset import DatasetError, Episode, EpisodeDataset, collect, record_gym, split_episodes
+from cdrl.data import store as ds
+from cdrl.data.episode import Episode
+from cdrl.data.store import DatasetError, EpisodeDataset, collect, record_gym, split_episodes
 from envs import fastrng
 from envs.gym_env import game_for
 

@@ -5,12 +5,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdrl import config, nets, variants
-from cdrl.config import ArchConfig, ConvSpec
+from cdrl.models import make_variant, nets
+from cdrl.models.arch import THESIS, ArchConfig, ConvSpec, preset
+from cdrl.models.base import StepInput
 
 
 def test_thesis_table_sizes():
-    arch = config.THESIS
+    arch = THESIS
     assert arch.encoder_sizes == (150, 76, 38, 20, 10, 5, 1)
     assert arch.decoder_sizes == (1, 5, 10, 20, 38, 76, 150)
     assert [s.features for s in arch.encoder] == [16, 16, 32, 64, 128, 512]
@@ -21,7 +22,7 @@ def test_thesis_table_sizes():
 
 def test_every_intermediate_size_of_the_thesis_networks():
     """Run the real layers one by one (abstractly) and pin each output shape."""
-    arch = config.THESIS
+    arch = THESIS
     params = jax.eval_shape(lambda: {
         "enc": nets.init_obs_encoder(jax.random.PRNGKey(0), arch),
         "dec": nets.init_obs_decoder(jax.random.PRNGKey(0), arch),
@@ -133,8 +134,8 @@ def test_lstm_cell_equals_thesis_equations():
 
 def test_initialisation_scales():
     """LeCun-normal (std 1/sqrt(fan_in)) before SELU; Glorot-uniform elsewhere; zero biases."""
-    arch = config.THESIS
-    params = jax.jit(variants.make_variant("main_action", arch).init)(jax.random.PRNGKey(0))
+    arch = THESIS
+    params = jax.jit(make_variant("main_action", arch).init)(jax.random.PRNGKey(0))
     k = np.asarray(params["obs_enc"]["conv4"]["kernel"])  # 4x4x64 -> 128, followed by SELU
     assert abs(k.std() * np.sqrt(4 * 4 * 64) - 1.0) < 0.1
     w = np.asarray(params["lstm"]["w_input"])  # Glorot uniform: limit sqrt(6 / (fan_in + fan_out))
@@ -148,9 +149,9 @@ def test_initialisation_scales():
 def test_thesis_sized_model_one_step():
     """The full-size model (main with action: the initialiser the test above compiled already):
     one step from a zero carry gives a 150x150 frame in (0, 1)."""
-    v = variants.make_variant("main_action", config.THESIS)
+    v = make_variant("main_action", THESIS)
     params = jax.jit(v.init)(jax.random.PRNGKey(0))
-    x = variants.StepInput(obs=jnp.full((1, 150, 150), 0.5), action=jnp.full((1, 3), 0.5),
+    x = StepInput(obs=jnp.full((1, 150, 150), 0.5), action=jnp.full((1, 3), 0.5),
                            is_first=jnp.ones((1,), bool))
     carry, out = jax.jit(v.step)(params, v.init_carry(1), x)
     assert out["logits"].shape == (1, 150, 150)
@@ -165,6 +166,6 @@ def test_bad_architecture_is_rejected():
     with pytest.raises(ValueError, match="reduce the 100x100 image to 1x1"):
         ArchConfig(image_size=100)
     with pytest.raises(ValueError, match="unknown architecture preset 'huge'"):
-        config.preset("huge")
+        preset("huge")
     with pytest.raises(ValueError, match="rebuild 8x8"):
         ArchConfig(image_size=8, encoder=(ConvSpec(4, 3, 2, 0), ConvSpec(8, 3, 1, 0)))

@@ -5,10 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdrl import config, online, variants
-from cdrl.online import OnlineConfig, OnlineHParams
+from cdrl.models import make_variant
+from cdrl.models.arch import TINY
+from cdrl.training import online
+from cdrl.training.online import OnlineConfig, OnlineHParams
 
-ARCH = config.TINY
+ARCH = TINY
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +28,7 @@ ENVS, T = 8, 8
 
 def _state(game, hp=None):
     g, params = game
-    v = variants.make_variant("reward_prediction", ARCH)
+    v = make_variant("reward_prediction", ARCH)
     cfg = OnlineConfig(num_envs=ENVS, unroll=T)
     hp = hp or OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
     return v, cfg, hp, online.init_online(v, g, params, cfg, jax.random.PRNGKey(0), hp)
@@ -100,7 +102,7 @@ def test_online_scan_equals_a_python_loop(game):
 
 def test_offline_variants_are_refused_online(game):
     g, env_params = game
-    v = variants.make_variant("main", ARCH)
+    v = make_variant("main", ARCH)
     with pytest.raises(ValueError, match="has no controller"):
         online.init_online(v, g, env_params, OnlineConfig(num_envs=1, unroll=2), jax.random.PRNGKey(0),
                            OnlineHParams.create())
@@ -108,15 +110,30 @@ def test_offline_variants_are_refused_online(game):
         OnlineHParams.create(scope="model")
 
 
+def _left_bonus_game(game):
+    """The test game with a reward of 1 more for every step that turns left (left pressed,
+    right not): a reward any controller can learn, for testing the reward ascent."""
+    from envs.slither import Slither
+
+    class LeftBonusSlither(Slither):
+        def step_state(self, key, state, action, params=None):
+            state, reward, terminated, truncated, info = super().step_state(key, state, action, params)
+            pressed = jnp.asarray(action) > 0.5
+            return state, reward + (pressed[1] & ~pressed[0]), terminated, truncated, info
+
+    g, _ = game
+    return LeftBonusSlither(num_opponents=g.num_opponents, max_segments=g.max_segments, arena_size=g.arena_size)
+
+
 def test_controller_learns_a_trivially_learnable_reward(game):
     """With a bonus for turning left, reward ascent teaches the controller to turn left: its
     noise-free return on held-out seeds clearly beats the uniform-random policy's."""
-    from cdrl import play
+    from cdrl.evaluation import play
     from envs.policies import get_policy
 
-    g, env_params = game
-    env_params = env_params.replace(left_bonus=np.float32(1.0))
-    v = variants.make_variant("reward_prediction", ARCH)
+    _, env_params = game
+    g = _left_bonus_game(game)
+    v = make_variant("reward_prediction", ARCH)
     cfg = OnlineConfig(num_envs=ENVS, unroll=T)
     hp = OnlineHParams.create(lr=0.1, ascent=1.0, reward_weight=0.1, warmup_steps=20, noise_std=0.3, noise_decay=0.98)
     state = online.init_online(v, g, env_params, cfg, jax.random.PRNGKey(0), hp)

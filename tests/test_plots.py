@@ -1,4 +1,4 @@
-"""The figures and the evaluation table of finished runs: `cdrl.plots`, `cdrl.report`."""
+"""The figures and the evaluation table of finished runs: `cdrl.analysis.plots`, `cdrl.analysis.report`."""
 import json
 import math
 import shutil
@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from cdrl.cli import main as cli_main
-from cdrl.plots import DPI, plot_runs, resolve_groups
-from cdrl.report import eval_runs, running_mean
-from cdrl.run import RunConfig, train_run
+from cdrl.analysis.plots import DPI, plot_runs, resolve_groups
+from cdrl.analysis.report import eval_runs, running_mean
+from cdrl.runs.config import RunConfig
+from cdrl.runs.train import train_run
 
 RUN = dict(data="synthetic", preset="tiny", episodes=6, episode_steps=30, unroll=8, batch=2, lr=0.3,
            steps=30, checkpoint_every=15, eval_every=15, eval_episodes=1)

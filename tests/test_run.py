@@ -116,4 +116,4 @@ def test_eval_policy_needs_a_controller_run(tmp_path, capsys):
     assert cli_main(["eval", "--policy", str(run)]) == 2
     assert "has no controller" in capsys.readouterr().err
     assert cli_main(["eval", "--policy", str(tmp_path / "nowhere")]) == 2
-    assert "is not a run directory" in capsys.readouterr().err
+    assert "nowhere does not exist" in capsys.readouterr().err

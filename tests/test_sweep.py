@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from cdrl.cli import main as cli_main
-from cdrl.run import RunConfig, train_run
-from cdrl.sweep import Grid, lr_search, sweep_run
+from cdrl.analysis.plots import plot_sweep
+from cdrl.runs.config import RunConfig
+from cdrl.runs.sweep import Grid, lr_search, sweep_run
+from cdrl.runs.train import train_run
 
 BASE = dict(preset="tiny", data="synthetic", episodes=6, episode_steps=20, unroll=4, batch=2,
             steps=6, eval_every=0, eval_episodes=1, checkpoint_every=3)
@@ -30,7 +32,7 @@ def test_two_config_sweep_equals_two_runs(tmp_path, variant):
         np.testing.assert_allclose(losses(tmp_path / "sweep" / row["name"]), losses(single), rtol=2e-5, atol=1e-6)
         assert row["test_bce"] == pytest.approx(summary["final_eval"]["bce"], rel=1e-4)
     assert losses(tmp_path / "sweep" / rows[0]["name"]) != losses(tmp_path / "sweep" / rows[1]["name"])
-    assert (tmp_path / "sweep" / "curves.png").stat().st_size > 0
+    assert plot_sweep(tmp_path / "sweep").stat().st_size > 0
     assert "| lr0.1-mom0.9-seed0-thr1000 |" in (tmp_path / "sweep" / "results.md").read_text()
 
 

@@ -17,7 +17,12 @@ torch = pytest.importorskip("torch")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from cdrl import config, nets, train, variants  # noqa: E402
+from cdrl.data.stream import Chunk  # noqa: E402
+from cdrl.models import make_variant, nets  # noqa: E402
+from cdrl.models.arch import THESIS, TINY  # noqa: E402
+from cdrl.training.optim import HParams, make_optimizer  # noqa: E402
+from cdrl.training.step import TrainState, chunk_loss, ratio_names, train_step_fn  # noqa: E402
+
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "torch_reference.py"
 _spec = importlib.util.spec_from_file_location("torch_reference", _PATH)
@@ -53,7 +58,7 @@ def _chunk(arch, T, B, seed, reset=True):
     is_first = np.zeros((T, B), bool)
     if reset:
         is_first[T // 2, B - 1] = True  # one stream starts a new episode mid-chunk
-    return train.Chunk(
+    return Chunk(
         obs=jnp.asarray(frames[:-1]),
         next_obs=jnp.asarray(frames[1:]),
         action=jnp.zeros((T, B, arch.action_dim)),
@@ -79,8 +84,8 @@ def _torch_inputs(chunk):
 
 
 def _cdrl_loss_grads(v, params, carry, chunk):
-    hp = train.HParams.create(v)
-    fn = _compiled(jax.value_and_grad(lambda p, c, ch: train.chunk_loss(v, p, c, hp, ch), has_aux=True),
+    hp = HParams.create(v)
+    fn = _compiled(jax.value_and_grad(lambda p, c, ch: chunk_loss(v, p, c, hp, ch), has_aux=True),
                    params, carry, chunk)
     (loss, (carry_out, _, _)), grads = fn(params, carry, chunk)
     return float(loss), carry_out, grads
@@ -114,7 +119,7 @@ def _assert_trees_close(ours, ref, rtol, atol_frac, what):
 
 
 def _compare(name, arch, T, B, rtol, atol_frac):
-    v = variants.make_variant(name, arch)
+    v = make_variant(name, arch)
     params = _init(v, 0)
     chunk, carry = _chunk(arch, T, B, seed=1), _carry(v, B, seed=2)
     loss_j, carry_j, grads_j = _cdrl_loss_grads(v, params, carry, chunk)
@@ -127,30 +132,30 @@ def _compare(name, arch, T, B, rtol, atol_frac):
 
 @pytest.mark.parametrize("name", VARIANTS)
 def test_tiny_loss_grads_carry_match_torch(name):
-    _compare(name, config.TINY, T=5, B=2, rtol=1e-5, atol_frac=1e-5)
+    _compare(name, TINY, T=5, B=2, rtol=1e-5, atol_frac=1e-5)
 
 
 def test_thesis_main_one_step_matches_torch():
     """The thesis-sized network (150x150 frames, LSTM 512): one T=2, B=1 chunk."""
     # Gradients here are ~1e-5..1e-6: atol is relative to each leaf's largest entry (seen: 5e-6).
-    _compare("main", config.THESIS, T=2, B=1, rtol=1e-4, atol_frac=2e-5)
+    _compare("main", THESIS, T=2, B=1, rtol=1e-4, atol_frac=2e-5)
 
 
 def test_sgd_momentum_steps_match_torch():
     """Two cdrl train steps (SGD lr 0.1, momentum 0.9; the carry flows from chunk to chunk)
     against two torch.optim.SGD steps: same loss, monitor ratios, parameters and carry after
     each (closed loop −: its carry holds the fed-back prediction too)."""
-    name, arch, T, B = "closed_loop_minus", config.TINY, 5, 2
-    v = variants.make_variant(name, arch)
-    hp = train.HParams.create(v, lr=0.1, momentum=0.9)
+    name, arch, T, B = "closed_loop_minus", TINY, 5, 2
+    v = make_variant(name, arch)
+    hp = HParams.create(v, lr=0.1, momentum=0.9)
     params = _init(v, 3)
-    state = train.TrainState(params=params, opt_state=train.make_optimizer(hp).init(params),
+    state = TrainState(params=params, opt_state=make_optimizer(hp).init(params),
                              carry=_carry(v, B, seed=4), step=jnp.zeros((), jnp.int32))
     model = tr.load_cdrl_params(tr.TorchModel(arch, name), state.params)
     opt = tr.make_optimizer(model, lr=0.1, momentum=0.9)
     carry_t = tr.carry_from_cdrl(state.carry)
     chunks = [_chunk(arch, T, B, seed=10 + i, reset=(i == 1)) for i in range(2)]
-    step = _compiled(lambda s, h, c: train.train_step_fn(v, s, h, c), state, hp, chunks[0])
+    step = _compiled(lambda s, h, c: train_step_fn(v, s, h, c), state, hp, chunks[0])
     for i, chunk in enumerate(chunks):
         state, metrics = step(state, hp, chunk)
         assert not bool(metrics["diverged"])
@@ -158,7 +163,7 @@ def test_sgd_momentum_steps_match_torch():
         assert float(metrics["loss"]) == pytest.approx(float(loss_t), rel=1e-5)
         # The monitor's ratios, in cdrl's leaf order.
         names = tr.param_names(model)
-        order = [names.index(n) for n in train.ratio_names(state)]
+        order = [names.index(n) for n in ratio_names(state)]
         np.testing.assert_allclose(ratios.numpy()[order], np.asarray(metrics["ratios"]), rtol=1e-4, atol=1e-7)
         _assert_trees_close(tr.params_as_cdrl(model), jax.tree.map(np.asarray, state.params), 1e-5, 1e-6,
                             f"parameter after step {i + 1}")
@@ -167,7 +172,7 @@ def test_sgd_momentum_steps_match_torch():
 
 
 def test_load_rejects_other_trees():
-    model = tr.TorchModel(config.TINY, "main")
-    params = jax.eval_shape(variants.make_variant("main_action", config.TINY).init, jax.random.PRNGKey(0))
+    model = tr.TorchModel(TINY, "main")
+    params = jax.eval_shape(make_variant("main_action", TINY).init, jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="act_enc"):
         tr.load_cdrl_params(model, params)

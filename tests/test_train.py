@@ -4,23 +4,30 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdrl import config, data, evaluate, loop, train, variants
-from cdrl.episode import Episode
-from cdrl.monitor import leaf_ratio
+from cdrl.data.episode import Episode
+from cdrl.data.stream import ChunkStream
+from cdrl.data.synthetic import synthetic_episodes
+from cdrl.evaluation.metrics import evaluate
+from cdrl.models import make_variant
+from cdrl.models.arch import SMALL, TINY
+from cdrl.training.loop import DivergenceError, fit
+from cdrl.training.monitor import leaf_ratio
+from cdrl.training.optim import HParams
+from cdrl.training.step import chunk_loss, init_state, ratio_names, train_step, train_step_fn
 
-ARCH = config.TINY
+ARCH = TINY
 
 
 def _setup(name="main", batch=2, T=5, episodes=None, lr=0.1, seed=0):
-    v = variants.make_variant(name, ARCH)
-    episodes = episodes or data.synthetic_episodes(3, 12, ARCH.image_size, seed=seed)
-    stream = data.ChunkStream(episodes, batch, T, image_size=ARCH.image_size)
-    hp = train.HParams.create(v, lr=lr)
-    state = train.init_state(v, jax.random.PRNGKey(seed), batch, hp)
+    v = make_variant(name, ARCH)
+    episodes = episodes or synthetic_episodes(3, 12, ARCH.image_size, seed=seed)
+    stream = ChunkStream(episodes, batch, T, image_size=ARCH.image_size)
+    hp = HParams.create(v, lr=lr)
+    state = init_state(v, jax.random.PRNGKey(seed), batch, hp)
     return v, stream, hp, state
 
 
-step_no_donate = jax.jit(train.train_step_fn, static_argnums=0)
+step_no_donate = jax.jit(train_step_fn, static_argnums=0)
 
 
 def test_tbptt_cut_no_gradient_across_chunks_but_carry_flows():
@@ -29,8 +36,8 @@ def test_tbptt_cut_no_gradient_across_chunks_but_carry_flows():
 
     def chunk2_loss(obs1):
         chunk1 = c1.replace(obs=obs1)
-        _, (carry, _, _) = train.chunk_loss(v, state.params, state.carry, hp, chunk1)
-        loss, _ = train.chunk_loss(v, state.params, carry, hp, c2)
+        _, (carry, _, _) = chunk_loss(v, state.params, state.carry, hp, chunk1)
+        loss, _ = chunk_loss(v, state.params, carry, hp, c2)
         return loss
 
     obs1 = jnp.asarray(c1.obs, jnp.float32) / 255
@@ -43,21 +50,21 @@ def test_tbptt_cut_no_gradient_across_chunks_but_carry_flows():
 
 def test_second_chunk_does_not_recompile():
     v, stream, hp, state = _setup()
-    state, _ = train.train_step(v, state, hp, stream.next_chunk())
-    before = train.train_step._cache_size()
+    state, _ = train_step(v, state, hp, stream.next_chunk())
+    before = train_step._cache_size()
     for lr in (0.05, 0.01):  # new hyper-parameter values are traced, not static
-        hp2 = train.HParams.create(v, lr=lr)
-        state, _ = train.train_step(v, state, hp2, stream.next_chunk())
-    assert train.train_step._cache_size() == before
+        hp2 = HParams.create(v, lr=lr)
+        state, _ = train_step(v, state, hp2, stream.next_chunk())
+    assert train_step._cache_size() == before
 
 
 def test_sgd_momentum_is_the_thesis_rule():
     """mu <- beta mu + g; w <- w - alpha mu, over two steps."""
     v, stream, hp, state = _setup(lr=0.05)
-    hp = train.HParams.create(v, lr=0.05, momentum=0.9)
+    hp = HParams.create(v, lr=0.05, momentum=0.9)
     chunks = [stream.next_chunk(), stream.next_chunk()]
     w, carry, mu = state.params, state.carry, None
-    grad = jax.jit(jax.value_and_grad(lambda p, c, ch: train.chunk_loss(v, p, c, hp, ch), has_aux=True))
+    grad = jax.jit(jax.value_and_grad(lambda p, c, ch: chunk_loss(v, p, c, hp, ch), has_aux=True))
     for chunk in chunks:
         (_, (carry_next, _, _)), g = grad(w, carry, chunk)
         mu = g if mu is None else jax.tree.map(lambda m, gi: 0.9 * m + gi, mu, g)
@@ -72,12 +79,12 @@ def test_monitor_ratios_equal_direct_norms():
     v, stream, hp, state = _setup()
     state, _ = step_no_donate(v, state, hp, stream.next_chunk())  # biases become non-zero
     chunk = stream.next_chunk()
-    grads = jax.grad(lambda p: train.chunk_loss(v, p, state.carry, hp, chunk)[0])(state.params)
+    grads = jax.grad(lambda p: chunk_loss(v, p, state.carry, hp, chunk)[0])(state.params)
     want = [np.linalg.norm(np.asarray(g)) / np.linalg.norm(np.asarray(p))
             for g, p in zip(jax.tree.leaves(grads), jax.tree.leaves(state.params))]
     _, metrics = step_no_donate(v, state, hp, chunk)
     np.testing.assert_allclose(metrics["ratios"], want, rtol=1e-4)
-    names = train.ratio_names(state)
+    names = ratio_names(state)
     assert len(names) == len(want) and "obs_enc/conv0/kernel" in names
     kernels = [w for w, p in zip(want, jax.tree.leaves(state.params)) if p.ndim >= 2]
     assert float(metrics["max_ratio"]) == pytest.approx(max(kernels), rel=1e-4)
@@ -88,31 +95,31 @@ def test_small_learning_rate_is_not_taken_for_divergence():
     """After the first update a zero-initialised bias has norm lr * |g|, so its ratio is about
     1 / lr: the check watches kernels only, or every small rate would 'diverge' at step 1."""
     v, stream, _, state = _setup(lr=1e-4)
-    hp = train.HParams.create(v, lr=1e-4, diverge_threshold=1e3)
+    hp = HParams.create(v, lr=1e-4, diverge_threshold=1e3)
     for _ in range(3):
         state, metrics = step_no_donate(v, state, hp, stream.next_chunk())
         assert not bool(metrics["diverged"])
-    biases = [r for r, n in zip(metrics["ratios"], train.ratio_names(state)) if n.endswith("bias")]
+    biases = [r for r, n in zip(metrics["ratios"], ratio_names(state)) if n.endswith("bias")]
     assert max(biases) > 1e3  # logged, and above the threshold, but not watched
 
 
 def test_monitor_state_has_fixed_structure_under_scan():
     v, stream, hp, state = _setup()
     chunks = jax.tree.map(lambda *a: jnp.stack(a), *[stream.next_chunk() for _ in range(3)])
-    final, metrics = jax.lax.scan(lambda s, c: train.train_step_fn(v, s, hp, c), state, chunks)
+    final, metrics = jax.lax.scan(lambda s, c: train_step_fn(v, s, hp, c), state, chunks)
     assert metrics["ratios"].shape == (3, len(jax.tree.leaves(state.params)))
     assert int(final.step) == 3
 
 
 def test_large_learning_rate_stops_with_the_group_named_and_keeps_good_params():
     v, stream, _, state = _setup(lr=1e3)
-    hp = train.HParams.create(v, lr=1e3, diverge_threshold=1e3)
+    hp = HParams.create(v, lr=1e3, diverge_threshold=1e3)
     seen = []
-    with pytest.raises(loop.DivergenceError, match=r"diverged at step \d+: .*worst parameter group: [a-z_]+/") as err:
-        loop.fit(v, stream, 50, hp, state=state,
+    with pytest.raises(DivergenceError, match=r"diverged at step \d+: .*worst parameter group: [a-z_]+/") as err:
+        fit(v, stream, 50, hp, state=state,
                  callback=lambda r: seen.append(r))
     e = err.value
-    assert e.group in train.ratio_names(e.state)
+    assert e.group in ratio_names(e.state)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(e.state.params))
     assert int(e.state.step) == e.step == len(seen)
 
@@ -133,18 +140,18 @@ def test_nan_in_data_gives_a_clear_error():
         def next_chunk(self):
             return bad
 
-    with pytest.raises(loop.DivergenceError, match="NaN/Inf"):
-        loop.fit(v, Once(), 1, hp, state=state)
+    with pytest.raises(DivergenceError, match="NaN/Inf"):
+        fit(v, Once(), 1, hp, state=state)
 
 
 def test_bad_input_errors_name_the_problem():
-    eps = data.synthetic_episodes(2, 8, 16)
+    eps = synthetic_episodes(2, 8, 16)
     with pytest.raises(ValueError, match="frames of 16x16, the model expects 64x64"):
-        data.ChunkStream(eps, 1, 4, image_size=64).next_chunk()
+        ChunkStream(eps, 1, 4, image_size=64).next_chunk()
     with pytest.raises(ValueError, match="unroll length T must be >= 1"):
-        data.ChunkStream(eps, 1, 0)
+        ChunkStream(eps, 1, 0)
     with pytest.raises(ValueError, match="batch size B must be >= 1"):
-        data.ChunkStream(eps, 0, 4)
+        ChunkStream(eps, 0, 4)
     with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
         Episode(np.full((3, 16, 16), 1.5, np.float32), np.zeros((3, 3), np.float32), np.zeros(3, np.float32))
     with pytest.raises(ValueError, match=r"must be \[N, H, W\]"):
@@ -154,7 +161,7 @@ def test_bad_input_errors_name_the_problem():
 def test_chunks_are_aligned_and_mark_episode_starts():
     eps = [Episode(np.full((n, 16, 16), i, np.uint8), np.full((n, 3), 0.5, np.float32),
                    np.arange(n, dtype=np.float32)) for i, n in enumerate([4, 6, 3])]
-    stream = data.ChunkStream(eps, 1, 4, shuffle=False)
+    stream = ChunkStream(eps, 1, 4, shuffle=False)
     chunks = [stream.next_chunk() for _ in range(3)]
     obs = np.concatenate([c.obs[:, 0, 0, 0] for c in chunks])
     nxt = np.concatenate([c.next_obs[:, 0, 0, 0] for c in chunks])
@@ -169,11 +176,11 @@ def test_chunks_are_aligned_and_mark_episode_starts():
 
 
 def test_stream_cursor_resumes_exactly():
-    eps = data.synthetic_episodes(5, 9, 16, seed=3)
-    a = data.ChunkStream(eps, 2, 4, seed=7)
+    eps = synthetic_episodes(5, 9, 16, seed=3)
+    a = ChunkStream(eps, 2, 4, seed=7)
     for _ in range(4):
         a.next_chunk()
-    b = data.ChunkStream(eps, 2, 4, seed=7)
+    b = ChunkStream(eps, 2, 4, seed=7)
     b.load_state_dict(a.state_dict())
     for _ in range(6):
         ca, cb = a.next_chunk(), b.next_chunk()
@@ -186,7 +193,7 @@ def test_jit_equals_no_jit():
     chunk = stream.next_chunk()
     jitted, m1 = step_no_donate(v, state, hp, chunk)
     with jax.disable_jit():
-        plain, m2 = train.train_step_fn(v, state, hp, chunk)
+        plain, m2 = train_step_fn(v, state, hp, chunk)
     np.testing.assert_allclose(m1["loss"], m2["loss"], rtol=1e-5)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), jitted.params, plain.params)
 
@@ -194,10 +201,10 @@ def test_jit_equals_no_jit():
 def test_vmap_over_two_learning_rates_equals_two_runs():
     v, stream, _, state = _setup()
     chunk = stream.next_chunk()
-    hps = [train.HParams.create(v, lr=lr) for lr in (0.1, 0.02)]
+    hps = [HParams.create(v, lr=lr) for lr in (0.1, 0.02)]
     both = jax.tree.map(lambda *a: jnp.stack(a), *hps)
     states = jax.tree.map(lambda a: jnp.stack([a, a]), state)
-    vm, _ = jax.jit(jax.vmap(train.train_step_fn, in_axes=(None, 0, 0, None)), static_argnums=0)(
+    vm, _ = jax.jit(jax.vmap(train_step_fn, in_axes=(None, 0, 0, None)), static_argnums=0)(
         v, states, both, chunk)
     for i, hp in enumerate(hps):
         single, _ = step_no_donate(v, state, hp, chunk)
@@ -206,13 +213,13 @@ def test_vmap_over_two_learning_rates_equals_two_runs():
 
 def test_main_learns_well_below_copy_last_frame():
     """The small preset of `main` on a learnable moving blob, held-out episodes."""
-    arch = config.SMALL
-    v = variants.make_variant("main", arch)
-    train_eps = data.synthetic_episodes(16, 64, arch.image_size, seed=0, pushed=False)
-    test_eps = data.synthetic_episodes(2, 64, arch.image_size, seed=1, pushed=False)
-    stream = data.ChunkStream(train_eps, 4, 16, image_size=arch.image_size)
-    hp = train.HParams.create(v, lr=1.0, momentum=0.9)
-    state, history = loop.fit(v, stream, 240, hp, key=jax.random.PRNGKey(0))
-    result = evaluate.evaluate(v, state.params, test_eps, unroll=16)
+    arch = SMALL
+    v = make_variant("main", arch)
+    train_eps = synthetic_episodes(16, 64, arch.image_size, seed=0, pushed=False)
+    test_eps = synthetic_episodes(2, 64, arch.image_size, seed=1, pushed=False)
+    stream = ChunkStream(train_eps, 4, 16, image_size=arch.image_size)
+    hp = HParams.create(v, lr=1.0, momentum=0.9)
+    state, history = fit(v, stream, 240, hp, key=jax.random.PRNGKey(0))
+    result = evaluate(v, state.params, test_eps, unroll=16)
     assert np.mean([h.loss for h in history[-20:]]) < 0.5 * np.mean([h.loss for h in history[:5]])
     assert result["bce"] < 0.85 * result["copy_bce"], result

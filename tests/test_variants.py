@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from cdrl import config, variants
-from cdrl.train import HParams
-from cdrl.variants import StepInput
+from cdrl.models import VARIANTS, make_variant
+from cdrl.models.arch import TINY
+from cdrl.models.base import StepInput
+from cdrl.training.optim import HParams
 
-ARCH = config.TINY
-NAMES = sorted(variants.VARIANTS)
+
+ARCH = TINY
+NAMES = sorted(VARIANTS)
 
 
 def _inputs(T=6, B=2, seed=0, dtype=jnp.float32):
@@ -29,7 +31,7 @@ def _inputs(T=6, B=2, seed=0, dtype=jnp.float32):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_unroll_equals_python_loop(name):
-    v = variants.make_variant(name, ARCH)
+    v = make_variant(name, ARCH)
     params = v.init(jax.random.PRNGKey(1))
     xs = _inputs()
     carry_scan, outs_scan = jax.jit(v.unroll)(params, v.init_carry(2), xs)
@@ -68,18 +70,18 @@ def _check_loss_grads(v, weights, frozen=()):
 @pytest.mark.parametrize("name", [n for n in NAMES if n != "baseline_recurrent"])
 def test_gradients_pass_check_grads(name):
     """Reverse-mode gradients of the loss against finite differences (float64)."""
-    v = variants.make_variant(name, ARCH)
+    v = make_variant(name, ARCH)
     _check_loss_grads(v, {k: 1.0 for k in v.default_loss_weights()})
 
 
 def test_recurrent_baseline_gradients_pass_check_grads():
-    v = variants.make_variant("baseline_recurrent", ARCH)
+    v = make_variant("baseline_recurrent", ARCH)
     _check_loss_grads(v, {"recon_bce": 1.0})
     _check_loss_grads(v, {"code_mse": 1.0, "obs_bce": 1.0, "code_pred_mse": 1.0}, frozen=("obs_enc",))
 
 
 def test_episode_start_resets_only_its_stream():
-    v = variants.make_variant("closed_loop_minus", ARCH)
+    v = make_variant("closed_loop_minus", ARCH)
     params = v.init(jax.random.PRNGKey(3))
     xs = _inputs()
     _, outs = v.unroll(params, v.init_carry(2), xs)
@@ -98,7 +100,7 @@ def test_episode_start_resets_only_its_stream():
 def test_closed_loop_backpropagates_through_the_fed_back_prediction(name):
     """The loss at t=1 depends on the decoder through õ_1 fed back into the input; cutting
     that path with a stop-gradient changes the decoder's gradient."""
-    v = variants.make_variant(name, ARCH)
+    v = make_variant(name, ARCH)
     params = v.init(jax.random.PRNGKey(4))
     xs = _inputs(T=2)
 
@@ -116,17 +118,17 @@ def test_closed_loop_backpropagates_through_the_fed_back_prediction(name):
 
 
 def test_residual_adds_the_input_code():
-    v = variants.make_variant("residual", ARCH)
+    v = make_variant("residual", ARCH)
     params = v.init(jax.random.PRNGKey(5))
     _, outs = v.unroll(params, v.init_carry(2), _inputs())
-    base = variants.make_variant("main", ARCH)
+    base = make_variant("main", ARCH)
     _, plain = base.unroll(params, base.init_carry(2), _inputs())
     np.testing.assert_allclose(outs["pred_code"], plain["pred_code"] + outs["code"], rtol=1e-5, atol=1e-6)
 
 
 def test_recurrent_baseline_stages_route_gradients_apart():
     """Stage 1 (recon) moves only the autoencoder, stage 2 (code MSE) only the LSTM+FC."""
-    v = variants.make_variant("baseline_recurrent", ARCH)
+    v = make_variant("baseline_recurrent", ARCH)
     params = v.init(jax.random.PRNGKey(6))
     xs = _inputs()
     nxt = jnp.roll(xs.obs, -1, axis=0)
@@ -145,13 +147,13 @@ def test_recurrent_baseline_stages_route_gradients_apart():
 
 
 def test_action_variant_sees_the_action():
-    v = variants.make_variant("main_action", ARCH)
+    v = make_variant("main_action", ARCH)
     params = v.init(jax.random.PRNGKey(7))
     xs = _inputs()
     _, a = v.unroll(params, v.init_carry(2), xs)
     _, b = v.unroll(params, v.init_carry(2), xs.replace(action=1 - xs.action))
     assert float(jnp.max(jnp.abs(a["logits"] - b["logits"]))) > 1e-5
-    m = variants.make_variant("main", ARCH)
+    m = make_variant("main", ARCH)
     mp = m.init(jax.random.PRNGKey(7))
     _, c = m.unroll(mp, m.init_carry(2), xs)
     _, d = m.unroll(mp, m.init_carry(2), xs.replace(action=1 - xs.action))
@@ -160,7 +162,7 @@ def test_action_variant_sees_the_action():
 
 def test_unknown_variant_and_loss_term_are_named():
     with pytest.raises(ValueError, match="unknown variant 'mian'"):
-        variants.make_variant("mian", ARCH)
-    v = variants.make_variant("main", ARCH)
+        make_variant("mian", ARCH)
+    v = make_variant("main", ARCH)
     with pytest.raises(ValueError, match="unknown loss term 'reward'"):
         HParams.create(v, loss_weights={"reward": 1.0})

@@ -1,5 +1,5 @@
-"""A training run of a controller variant against the built-in game (`cdrl train` dispatches
-here for action_loop, reward_prediction and final_proposal).
+"""A training run of a controller variant against the built-in game (`cdrl train` runs it
+for action_loop, reward_prediction and final_proposal).
 
 The run directory has the layout of offline runs; `metrics.jsonl` lines add the real and
 predicted reward, the finished episodes' returns and the exploration noise. Checkpoints hold
@@ -8,7 +8,6 @@ the whole `OnlineState` (games included), so a resumed run continues exactly.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -17,31 +16,15 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from cdrl.loop import divergence_message
-from cdrl.monitor import group_names
-from cdrl.online import OnlineConfig, OnlineHParams, init_online, online_step
-from cdrl.play import controller_policy, format_table, play, summarize
-from cdrl.run import RunConfig, open_run
-from cdrl.variants import Variant
-
-
-def make_game(spec: str):
-    """The built-in game and its parameters, with `spec` ('name=value,...') overriding defaults."""
-    from envs.slither import Slither
-
-    game = Slither()
-    params = game.default_params
-    if spec:
-        names = {f.name for f in dataclasses.fields(params)}
-        changes = {}
-        for item in spec.split(","):
-            name, sep, value = item.partition("=")
-            name = name.strip()
-            if not sep or name not in names:
-                raise ValueError(f"bad game parameter {item!r}; use name=value with a name out of {sorted(names)}")
-            changes[name] = type(getattr(params, name))(float(value))
-        params = params.replace(**changes)
-    return game, params
+from cdrl.evaluation.play import controller_policy, format_table, play, summarize
+from cdrl.models import make_variant
+from cdrl.models.base import Variant
+from cdrl.runs.config import RunConfig
+from cdrl.runs.rundir import RunDir
+from cdrl.runs.sources import run_game
+from cdrl.training.loop import divergence_message
+from cdrl.training.monitor import group_names
+from cdrl.training.online import OnlineConfig, OnlineHParams, init_online, online_step
 
 
 def hparams(cfg: RunConfig) -> OnlineHParams:
@@ -63,19 +46,18 @@ def compare_policies(variant: Variant, params, game, env_params, episodes: int, 
     return rows
 
 
-def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bool,
+def online_train_run(cfg: RunConfig, variant: Variant, run: RunDir, resume: bool,
                      progress: bool | None = None) -> dict:
-    game, env_params = make_game(cfg.env)
-    env_params = env_params.replace(max_steps=cfg.episode_steps) if "max_steps" not in cfg.env else env_params
+    game, env_params = run_game(cfg)
     ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll)
     hp = hparams(cfg)
-    state = init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)
-    state, _, start, ckpts, metrics_log, eval_log = open_run(cfg, run_dir, state, resume)
+    opened = run.open(cfg, init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp), resume)
+    state, start, ckpts = opened.state, opened.start, opened.checkpoints
     names = group_names(state.train.params)
 
     def evaluate_policies(step):
         rows = compare_policies(variant, state.train.params, game, env_params, cfg.eval_episodes, cfg.episode_steps)
-        eval_log.append([{"step": step, "split": "play", "policies": rows}])
+        run.evals.append([{"step": step, "split": "play", "policies": rows}])
         return rows
 
     show = sys.stderr.isatty() if progress is None else progress
@@ -88,7 +70,7 @@ def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bo
         fps, t_last = cfg.batch * cfg.unroll / max(now - t_last, 1e-9), now
         if m["diverged"]:
             message, _, _ = divergence_message(step, m, names, cfg.diverge_threshold)
-            metrics_log.append(pending)
+            run.metrics.append(pending)
             ckpts.save(step, state, {"step": step, "config": dataclasses.asdict(cfg)})
             bar.close()
             raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
@@ -108,36 +90,29 @@ def online_train_run(cfg: RunConfig, variant: Variant, run_dir: Path, resume: bo
         if cfg.eval_every and done % cfg.eval_every == 0 and done < cfg.steps:
             rows = evaluate_policies(done)
         if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-            metrics_log.append(pending)
+            run.metrics.append(pending)
             pending = []
             ckpts.save(done, state, {"step": done, "config": dataclasses.asdict(cfg)})
-    metrics_log.append(pending)
+    run.metrics.append(pending)
     bar.close()
     if start < cfg.steps or rows is None:
         rows = evaluate_policies(cfg.steps)
     print(format_table(rows), file=sys.stderr)
-    return {"run_dir": str(run_dir), "steps": cfg.steps, "policies": rows}
+    return {"run_dir": str(run.path), "steps": cfg.steps, "policies": rows}
 
 
 def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = 10_000) -> dict[str, dict]:
     """`cdrl eval --policy RUN_DIR`: the run's controller (latest good checkpoint, no noise)
     against the uniform-random and behaviour-switching policies on the same held-out seeds."""
-    from cdrl.checkpoint import Checkpoints
-    from cdrl.variants import make_variant
-
-    run_dir = Path(run_dir)
-    config_path = run_dir / "config.json"
-    if not config_path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a run directory: {config_path} does not exist")
-    cfg = RunConfig(**json.loads(config_path.read_text()))
+    run = RunDir(run_dir)
+    cfg = run.read_config()
     variant = make_variant(cfg.variant, cfg.arch)
     if not variant.has_controller:
-        raise ValueError(f"run {run_dir} trains {cfg.variant!r}, which has no controller to play with")
-    game, env_params = make_game(cfg.env)
-    env_params = env_params.replace(max_steps=cfg.episode_steps) if "max_steps" not in cfg.env else env_params
+        raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
+    game, env_params = run_game(cfg)
     like = jax.eval_shape(lambda: init_online(variant, game, env_params, OnlineConfig(cfg.batch, cfg.unroll),
                                               jax.random.PRNGKey(cfg.seed), hparams(cfg)))
-    state, _, warnings = Checkpoints(run_dir / "checkpoints").restore_latest_good(like)
+    state, _, warnings = run.checkpoints().restore_latest_good(like)
     for w in warnings:
         print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
     return compare_policies(variant, state.train.params, game, env_params, episodes or cfg.eval_episodes,

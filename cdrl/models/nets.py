@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from cdrl.config import ArchConfig
+from cdrl.models.arch import ArchConfig
 
 Params = dict
 

@@ -8,7 +8,6 @@ episodes; `eval_runs(dirs)` does all three for several runs and prints a table.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import sys
 from pathlib import Path
@@ -17,11 +16,14 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 
-from cdrl.checkpoint import Checkpoints
-from cdrl.evaluate import evaluate
-from cdrl.run import RunConfig, load_episodes
-from cdrl.train import HParams, init_state
-from cdrl.variants import Variant, make_variant
+from cdrl.evaluation.metrics import evaluate
+from cdrl.models import make_variant
+from cdrl.models.base import Variant
+from cdrl.runs.config import RunConfig
+from cdrl.runs.rundir import RunDir
+from cdrl.runs.sources import load_episodes
+from cdrl.training.optim import HParams
+from cdrl.training.step import init_state
 
 # The thesis reports the training loss as a running average over the previous 4096 samples.
 LOSS_WINDOW_SAMPLES = 4096
@@ -63,21 +65,6 @@ class Model:
     step: int
 
 
-def _read_jsonl(path: Path) -> list[dict]:
-    """Records of a JSON-lines log. A truncated last line (a write cut off by a kill) is
-    dropped; a malformed line elsewhere is an error."""
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
-    records = []
-    for i, line in enumerate(lines):
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError as exc:
-            if i == len(lines) - 1:
-                break
-            raise ValueError(f"{path}: line {i + 1} is not valid JSON ({exc})") from None
-    return records
-
-
 def _by_step(records: list[dict]) -> list[dict]:
     """One record per step (the last one written wins), in step order."""
     return [r for _, r in sorted({int(r["step"]): r for r in records}.items())]
@@ -86,30 +73,19 @@ def _by_step(records: list[dict]) -> list[dict]:
 def load_run(run_dir: str | Path) -> Run:
     """Read a run directory. FileNotFoundError if it or its metrics file is missing,
     ValueError if it is not a run directory or its metrics file holds no step."""
-    path = Path(run_dir)
-    if not path.is_dir():
-        raise FileNotFoundError(f"run directory {path} does not exist")
-    config_path = path / "config.json"
-    if not config_path.is_file():
-        raise ValueError(f"{path} is not a run directory: it has no config.json (make one with `cdrl train --run-dir`)")
-    try:
-        config = RunConfig(**json.loads(config_path.read_text()))
-    except (json.JSONDecodeError, TypeError) as exc:
-        raise ValueError(f"{config_path} is not a valid run config: {exc}") from None
-    metrics_path = path / "metrics.jsonl"
-    if not metrics_path.is_file():
-        raise FileNotFoundError(f"{metrics_path} does not exist: the run has not logged a training step yet")
-    metrics = _by_step(_read_jsonl(metrics_path))
+    run = RunDir(run_dir)
+    config = run.read_config()
+    if not run.metrics.path.is_file():
+        raise FileNotFoundError(f"{run.metrics.path} does not exist: the run has not logged a training step yet")
+    metrics = _by_step(run.metrics.read())
     if not metrics:
-        raise ValueError(f"{metrics_path} is empty: the run has not logged a training step yet")
-    eval_path = path / "eval.jsonl"
-    evals = _by_step(_read_jsonl(eval_path)) if eval_path.is_file() else []
-    return Run(path=path, config=config, metrics=metrics, evals=evals)
+        raise ValueError(f"{run.metrics.path} is empty: the run has not logged a training step yet")
+    return Run(path=run.path, config=config, metrics=metrics, evals=_by_step(run.evals.read()))
 
 
 def restore_model(run: Run) -> Model:
     """The run's latest good checkpoint. FileNotFoundError if it has none;
-    `cdrl.checkpoint.CheckpointError` (a RuntimeError) if every one is corrupt."""
+    `cdrl.runs.checkpoint.CheckpointError` (a RuntimeError) if every one is corrupt."""
     cfg = run.config
     directory = run.path / "checkpoints"
     if not directory.is_dir() or not any(p.name.isdigit() for p in directory.iterdir()):
@@ -119,7 +95,7 @@ def restore_model(run: Run) -> Model:
     # The abstract shape of a state is all a restore needs; tracing it is much cheaper than
     # initialising one eagerly.
     like = jax.eval_shape(lambda: init_state(variant, jax.random.PRNGKey(0), cfg.batch, hp))
-    state, meta, warnings = Checkpoints(directory, keep=cfg.keep_checkpoints).restore_latest_good(like)
+    state, meta, warnings = RunDir(run.path).checkpoints(cfg.keep_checkpoints).restore_latest_good(like)
     for warning in warnings:
         print(f"warning: {warning}; using an older checkpoint", file=sys.stderr)
     return Model(variant=variant, params=state.params, step=int(meta["step"]))

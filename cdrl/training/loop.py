@@ -1,6 +1,6 @@
 """The host loop: feeds chunks to the pure train step, watches for divergence, reports.
 
-Everything numeric happens in `cdrl.train.train_step`; this loop only moves data, logs and
+Everything numeric happens in `cdrl.training.step.train_step`; this loop only moves data, logs and
 stops. Variants trained in stages (the recurrent baseline: autoencoder, then LSTM on frozen
 codes) get each stage's loss weights in turn, with fresh optimiser momentum at the switch.
 """
@@ -13,9 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cdrl.data import ChunkStream
-from cdrl.train import HParams, TrainState, init_state, make_optimizer, ratio_names, train_step
-from cdrl.variants import Variant
+from cdrl.data.stream import ChunkStream
+from cdrl.models.base import Variant
+from cdrl.training.optim import HParams, make_optimizer
+from cdrl.training.step import TrainState, init_state, ratio_names, train_step
 
 
 class DivergenceError(RuntimeError):

@@ -1,7 +1,7 @@
 """Static architecture configuration: frozen, hashable, usable as a `jit` static argument.
 
 Sizes and layer tables live here; numbers that may vary inside one compiled program
-(learning rate, momentum, loss weights) live in `cdrl.train.HParams` instead.
+(learning rate, momentum, loss weights) live in `cdrl.training.optim.HParams` instead.
 """
 from __future__ import annotations
 

@@ -25,9 +25,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from cdrl.monitor import NormRatioState, norm_ratio_monitor
-from cdrl.train import TrainState, all_finite, run_once, watched_groups
-from cdrl.variants import StepInput, Variant, bce_with_logits
+from cdrl.data.frames import resize_obs
+from cdrl.models.base import StepInput, Variant, bce_with_logits
+from cdrl.training.monitor import NormRatioState, norm_ratio_monitor
+from cdrl.training.step import TrainState, all_finite, run_once, watched_groups
 
 SCOPES = ("controller", "all")
 
@@ -78,14 +79,6 @@ class OnlineState:
     key: jax.Array
     episode_return: jax.Array  # [B] running return of the current episodes
     episode_length: jax.Array  # [B]
-
-
-def resize_obs(obs: jax.Array, size: int) -> jax.Array:
-    """Game observations `[..., S, S]` to the model's `size` (area-averaging when shrinking)."""
-    if obs.shape[-1] == size:
-        return obs
-    shape = obs.shape[:-2] + (size, size)
-    return jax.image.resize(obs, shape, method="linear", antialias=True)
 
 
 def optimizer(hp: OnlineHParams) -> optax.GradientTransformation:

@@ -8,7 +8,8 @@ diverges keeps its last good state and stops there while the others go on.
 
 `sweep_run` writes one ordinary run directory per configuration (config.json, metrics.jsonl,
 eval.jsonl, a final checkpoint), so `cdrl eval`, `cdrl plot` and `cdrl train --resume` work
-on each of them, plus `results.json`, `results.md` and `curves.png` for the whole grid.
+on each of them, plus `results.json` and `results.md` for the whole grid (`cdrl sweep`
+also draws every loss curve into `curves.png`: `cdrl.analysis.plots.plot_sweep`).
 `lr_search` is the thesis's procedure (section 4.3.1): start high and lower the rate until
 no parameter group's norm ratio ||grad|| / ||param|| exceeds a threshold over a probe
 budget, with every candidate probed in parallel.
@@ -30,14 +31,18 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cdrl import data as data_lib
-from cdrl.checkpoint import Checkpoints
-from cdrl.evaluate import evaluate
-from cdrl.loop import enter_stage, stage_schedule
-from cdrl.run import RunConfig, RunLog, atomic_write_text, load_episodes
-from cdrl.monitor import group_names
-from cdrl.train import Chunk, HParams, TrainState, init_params, make_optimizer, train_step_fn
-from cdrl.variants import Variant, make_variant
+from cdrl.data.stream import Chunk, ChunkStream
+from cdrl.evaluation.metrics import evaluate
+from cdrl.models import make_variant
+from cdrl.models.base import Variant
+from cdrl.runs.config import RunConfig
+from cdrl.runs.offline import step_record
+from cdrl.runs.rundir import RunDir, atomic_write_text
+from cdrl.runs.sources import load_episodes
+from cdrl.training.loop import enter_stage, stage_schedule
+from cdrl.training.monitor import group_names
+from cdrl.training.optim import HParams, make_optimizer
+from cdrl.training.step import TrainState, init_params, train_step_fn
 
 GRID_FIELDS = ("lr", "momentum", "seed", "diverge_threshold")
 
@@ -126,7 +131,7 @@ def _check_grid(cfgs: Sequence[RunConfig], variant: Variant) -> None:
 StepCallback = Callable[[int, dict, float], None]
 
 
-def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, data_lib.ChunkStream], steps: int,
+def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, ChunkStream], steps: int,
              callback: StepCallback | None = None, on_diverge: Callable[[int, int, TrainState], None] | None = None):
     """The host loop of a sweep: `steps` vmapped train steps. `streams` maps each seed to
     its data stream. `callback(step, metrics, seconds)` sees every step's metrics (numpy,
@@ -153,24 +158,12 @@ def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, dat
     return states, np.asarray(alive)
 
 
-def _record(step: int, metrics: dict, i: int, names: list[str], fps: float) -> dict:
-    return {
-        "step": step,
-        "loss": float(metrics["loss"][i]),
-        "terms": {k: float(v[i]) for k, v in metrics["terms"].items()},
-        "max_ratio": float(metrics["max_ratio"][i]),
-        "worst_group": names[int(metrics["worst_group"][i])],
-        "ratios": dict(zip(names, np.asarray(metrics["ratios"][i]).tolist())),
-        "fps": fps,
-    }
-
-
 def _streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], Sequence]) -> dict:
     streams = {}
     for c in cfgs:
         if c.seed not in streams:
-            streams[c.seed] = data_lib.ChunkStream(train_eps_of(c), c.batch, c.unroll,
-                                                   image_size=c.arch.image_size, seed=c.seed)
+            streams[c.seed] = ChunkStream(train_eps_of(c), c.batch, c.unroll, image_size=c.arch.image_size,
+                                          seed=c.seed)
     return streams
 
 
@@ -191,12 +184,9 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     cache = run_dir.parent / "data-cache"
     episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
     streams = _streams(cfgs, lambda c: episodes[c.seed][0])
-    dirs = [run_dir / config_name(c) for c in cfgs]
-    logs = []
-    for c, d in zip(cfgs, dirs):
-        d.mkdir(exist_ok=True)
-        atomic_write_text(d / "config.json", json.dumps(dataclasses.asdict(c), indent=2) + "\n")
-        logs.append(RunLog(d / "metrics.jsonl"))
+    runs = [RunDir(run_dir / config_name(c)) for c in cfgs]
+    for c, run in zip(cfgs, runs):
+        run.write_config(c)
     names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
     diverged: dict[int, dict] = {}
 
@@ -204,7 +194,7 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
         c = cfgs[i]
         meta = {"step": step, "config": dataclasses.asdict(c), "stream": streams[c.seed].state_dict(),
                 "key": np.asarray(jax.random.PRNGKey(c.seed)).tolist()}
-        Checkpoints(dirs[i] / "checkpoints", keep=c.keep_checkpoints).save(step, state, meta)
+        runs[i].checkpoints(c.keep_checkpoints).save(step, state, meta)
 
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(total=base.steps, disable=not show, desc=f"sweep {base.variant} x{len(cfgs)}", unit="step")
@@ -222,10 +212,10 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
                                "diverged_ratio": float(metrics["max_ratio"][i]),
                                "finite": bool(metrics["finite"][i])}
                 continue
-            pending[i].append(_record(step, metrics, i, names, frames / max(seconds, 1e-9)))
+            pending[i].append(step_record(step, take(metrics, i), names, frames / max(seconds, 1e-9)))
         if (step + 1) % base.checkpoint_every == 0:
-            for i, log in enumerate(logs):
-                log.append(pending[i])
+            for i, run in enumerate(runs):
+                run.metrics.append(pending[i])
                 pending[i] = []
         bar.update(1)
         bar.set_postfix(loss=f"{float(np.mean(metrics['loss'])):.4f}", fps=f"{sweep_fps[-1]:.0f}")
@@ -233,31 +223,25 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge=save)
     bar.close()
     rows = []
-    for i, (c, d, log) in enumerate(zip(cfgs, dirs, logs)):
-        log.append(pending[i])
+    for i, (c, run) in enumerate(zip(cfgs, runs)):
+        run.metrics.append(pending[i])
         if alive[i]:
             save(base.steps, i, take(states, i))
-        rows.append(_result_row(variant, c, d, take(states, i).params, episodes[c.seed], diverged.get(i)))
+        rows.append(_result_row(variant, c, run, take(states, i).params, episodes[c.seed], diverged.get(i)))
     # The first step compiles; report the steady state.
     steady = sweep_fps[1:] or sweep_fps
     summary = {"configs": len(cfgs), "sweep_fps": float(np.median(steady)), "rows": rows}
     atomic_write_text(run_dir / "results.json", json.dumps(summary, indent=2) + "\n")
     atomic_write_text(run_dir / "results.md", format_results(rows) + "\n")
-    from cdrl.plots import loss_figure, save_figure
-    from cdrl.report import load_run
-
-    logged = [load_run(d) for d in dirs if (d / "metrics.jsonl").stat().st_size > 0]
-    if logged:
-        save_figure(loss_figure(logged), run_dir / "curves.png")
     return rows
 
 
-def _result_row(variant: Variant, cfg: RunConfig, run_dir: Path, params, episodes, diverged: dict | None) -> dict:
+def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, params, episodes, diverged: dict | None) -> dict:
     train_eps, test_eps = episodes
-    row = {"name": config_name(cfg), "run_dir": str(run_dir),
+    row = {"name": config_name(cfg), "run_dir": str(run.path),
            **{k: getattr(cfg, k) for k in GRID_FIELDS}, "diverged_at": None}
     row.update(diverged or {})
-    losses = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line]
+    losses = run.metrics.read()
     tail = losses[-max(1, len(losses) // 10):]
     row["final_loss"] = float(np.mean([r["terms"].get("obs_bce", r["loss"]) for r in tail])) if tail else None
     row["max_ratio"] = max((r["max_ratio"] for r in losses), default=None)
@@ -270,7 +254,7 @@ def _result_row(variant: Variant, cfg: RunConfig, run_dir: Path, params, episode
             row[f"{split}_{key}"] = float(value) if value is not None and math.isfinite(value) else None
         if split == "test":
             steps = row["diverged_at"] if row["diverged_at"] is not None else cfg.steps
-            RunLog(run_dir / "eval.jsonl").append([{"step": steps, "split": "test", **scores}])
+            run.evals.append([{"step": steps, "split": "test", **scores}])
     return row
 
 
@@ -297,7 +281,7 @@ def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, th
     `threshold` (or anything becomes non-finite). Returns the highest rate that survives
     (`chosen`, None if none does) and, per candidate, the largest ratio seen and, for the
     rejected ones, the step and parameter group that rejected them. Kernels are watched,
-    not biases (see `cdrl.train.watched_groups`). Game data is cached under `data_cache`."""
+    not biases (see `cdrl.training.step.watched_groups`). Game data is cached under `data_cache`."""
     candidates = sorted({float(c) for c in candidates}, reverse=True)
     if probe_steps < 1:
         raise ValueError(f"probe_steps must be >= 1, got {probe_steps}")

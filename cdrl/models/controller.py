@@ -1,4 +1,4 @@
-"""The controller variants (thesis figures 3.4, 3.5 and 6.1), in the same registry as the rest.
+"""The controller variants (thesis figures 3.4, 3.5 and 6.1).
 
 The core's FC layer outputs a code for the next observation and, besides it, a code for the
 next action (decoded by the controller D_a, the mirror of the action encoder) and, for the
@@ -10,7 +10,7 @@ reward variants, a code for the next reward (decoded by the reward head D_r):
   outputs õ_{t+1}, ã_{t+1}, r̃_{t+1}.
 
 `a_t` is whatever the step's input carries: offline, the recorded action; online
-(`cdrl.online`), the model's own previous output ã_t (plus exploration noise), so that
+(`cdrl.training.online`), the model's own previous output ã_t (plus exploration noise), so that
 gradients flow back through ã into D_a and E_a.
 """
 from __future__ import annotations
@@ -20,8 +20,9 @@ import itertools
 import jax
 import jax.numpy as jnp
 
-from cdrl import nets
-from cdrl.variants import ClosedLoop, MainAction, bce_with_logits, register
+from cdrl.models import nets
+from cdrl.models.base import bce_with_logits
+from cdrl.models.observation import ClosedLoop, MainAction
 
 
 class _Heads:
@@ -97,4 +98,4 @@ class FinalProposal(_Heads, ClosedLoop):
     sign = -1.0
 
 
-CONTROLLERS = tuple(register(cls) for cls in (ActionLoop, RewardPrediction, FinalProposal))
+CONTROLLER_VARIANTS = (ActionLoop, RewardPrediction, FinalProposal)

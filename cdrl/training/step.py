@@ -20,49 +20,11 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from cdrl.monitor import NormRatioState, group_names, norm_ratio_monitor
-from cdrl.variants import StepInput, Variant
-
-
-@flax.struct.dataclass
-class HParams:
-    """Traced hyper-parameters: one compiled program serves any values (and a `vmap` sweep)."""
-
-    lr: jax.Array
-    momentum: jax.Array
-    loss_weights: dict[str, jax.Array]
-    diverge_threshold: jax.Array
-
-    @classmethod
-    def create(
-        cls,
-        variant: Variant,
-        lr: float = 0.1,
-        momentum: float = 0.9,
-        loss_weights: dict[str, float] | None = None,
-        diverge_threshold: float = 1e3,
-    ) -> "HParams":
-        weights = dict(variant.default_loss_weights())
-        for key, value in (loss_weights or {}).items():
-            if key not in weights:
-                raise ValueError(
-                    f"unknown loss term {key!r} for variant {variant.name!r}; "
-                    f"its terms are {sorted(weights)}"
-                )
-            weights[key] = value
-        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        return cls(f32(lr), f32(momentum), {k: f32(v) for k, v in weights.items()}, f32(diverge_threshold))
-
-
-@flax.struct.dataclass
-class Chunk:
-    """T time steps of B streams, time-major. Frames are uint8 (0..255) or float in [0, 1]."""
-
-    obs: jax.Array  # [T, B, H, W]
-    next_obs: jax.Array  # [T, B, H, W]: the frame to predict, o_{t+1}
-    action: jax.Array  # [T, B, A]: a_t
-    reward: jax.Array  # [T, B]: r_{t+1}, received on arriving at o_{t+1}
-    is_first: jax.Array  # [T, B] bool
+from cdrl.data.frames import as_float
+from cdrl.data.stream import Chunk
+from cdrl.models.base import StepInput, Variant
+from cdrl.training.monitor import NormRatioState, group_names
+from cdrl.training.optim import HParams, make_optimizer
 
 
 @flax.struct.dataclass
@@ -71,11 +33,6 @@ class TrainState:
     opt_state: Any
     carry: Any  # the recurrent state of every stream, carried across chunks
     step: jax.Array
-
-
-def make_optimizer(hp: HParams) -> optax.GradientTransformation:
-    """Monitor first (raw gradients), then SGD: mu <- beta mu + g; w <- w - lr mu."""
-    return optax.chain(norm_ratio_monitor(), optax.sgd(hp.lr, momentum=hp.momentum))
 
 
 # Programs that run once (initialisers) compile without LLVM optimisation: the many
@@ -107,13 +64,6 @@ def init_state(variant: Variant, key: jax.Array, batch: int, hp: HParams | None 
         carry=variant.init_carry(batch),
         step=jnp.zeros((), jnp.int32),
     )
-
-
-def as_float(frames: jax.Array) -> jax.Array:
-    """uint8 frames to [0, 1]; float frames unchanged."""
-    if frames.dtype == jnp.uint8:
-        return frames.astype(jnp.float32) / 255.0
-    return frames.astype(jnp.float32)
 
 
 def step_inputs(chunk: Chunk) -> StepInput:

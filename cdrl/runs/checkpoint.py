@@ -1,5 +1,6 @@
-"""Checkpoints of a training run with orbax: the whole `TrainState` (parameters, optimiser
-state, every stream's carry, step) plus JSON metadata (the run config, the data cursor, the
+"""Checkpoints of a training run with orbax: the whole training state (a `TrainState`:
+parameters, optimiser state, every stream's carry, step; or an online run's `OnlineState`)
+plus JSON metadata (the run config, the data cursor, the
 PRNG key). Orbax writes each checkpoint to a temporary directory and renames it when
 complete, so an interrupted save never replaces a good checkpoint; the last k are kept.
 """
@@ -12,7 +13,6 @@ from typing import Any
 import jax
 import orbax.checkpoint as ocp
 
-from cdrl.train import TrainState
 
 logging.getLogger("absl").setLevel(logging.WARNING)
 
@@ -22,7 +22,7 @@ class CheckpointError(RuntimeError):
 
 
 class Checkpoints:
-    """Save and restore `TrainState`s and their metadata under `directory`."""
+    """Save and restore training states (any pytree) and their metadata under `directory`."""
 
     def __init__(self, directory: str | Path, keep: int = 3):
         self.directory = Path(directory).absolute()
@@ -32,7 +32,7 @@ class Checkpoints:
     def steps(self) -> list[int]:
         return sorted(self.manager.all_steps())
 
-    def save(self, step: int, state: TrainState, meta: dict[str, Any]) -> None:
+    def save(self, step: int, state, meta: dict[str, Any]) -> None:
         """Save `state` as checkpoint `step`, replacing a stale one of the same step (left by a
         corrupt checkpoint that a resumed run has reached again)."""
         if step in self.manager.all_steps():
@@ -48,7 +48,7 @@ class Checkpoints:
         restored = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
         return restored["meta"]
 
-    def restore(self, step: int, like: TrainState) -> tuple[TrainState, dict[str, Any]]:
+    def restore(self, step: int, like):
         """The state saved at `step`, shaped like `like` (an abstract or concrete state)."""
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
         restored = self.manager.restore(
@@ -57,7 +57,7 @@ class Checkpoints:
         )
         return restored["state"], restored["meta"]
 
-    def restore_latest_good(self, like: TrainState, check_meta=None) -> tuple[TrainState, dict[str, Any], list[str]]:
+    def restore_latest_good(self, like, check_meta=None) -> tuple[Any, dict[str, Any], list[str]]:
         """The newest checkpoint that restores cleanly; older ones are tried when a newer one is
         corrupt. `check_meta(meta)` may raise `CheckpointError` for an incompatible config
         (that is not skipped: it is an error). Returns (state, meta, warnings)."""

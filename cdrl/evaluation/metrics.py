@@ -14,9 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cdrl.episode import Episode
-from cdrl.train import Chunk, as_float, step_inputs
-from cdrl.variants import Variant
+from cdrl.data.episode import Episode
+from cdrl.data.frames import as_float
+from cdrl.data.stream import Chunk
+from cdrl.models.base import Variant
+from cdrl.training.step import step_inputs
 
 # The copy-last-frame baseline predicts clip(o_t, COPY_EPS, 1 - COPY_EPS): a hard 0/1 copy
 # would have an infinite BCE wherever a pixel flips.

@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from cdrl.online import resize_obs
-from cdrl.variants import StepInput, Variant
+from cdrl.data.frames import resize_obs
+from cdrl.models.base import StepInput, Variant
 
 
 def controller_policy(variant: Variant, params) -> tuple[Callable, Callable]:

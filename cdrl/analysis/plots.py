@@ -31,9 +31,10 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from cdrl.checkpoint import CheckpointError
-from cdrl.report import Model, Run, evaluate_model, load_run, restore_model, run_episodes, running_mean, training_loss
-from cdrl.variants import StepInput, Variant
+from cdrl.analysis.report import (Model, Run, evaluate_model, load_run, restore_model, run_episodes, running_mean,
+                                  training_loss)
+from cdrl.models.base import StepInput, Variant
+from cdrl.runs.checkpoint import CheckpointError
 
 DPI = 100
 LOSS_SIZE = (8.0, 5.0)
@@ -301,7 +302,7 @@ def rollout_figure(run: Run, model: Model, rollout: Rollout) -> Figure:
 def bce_bars_figure(rows: Sequence[dict]) -> Figure:
     """Per run: next-frame BCE on training and on held-out episodes, next to the
     copy-last-frame baseline on the same frames (thesis figure 5.9). `rows` are
-    `cdrl.report.evaluate_model` rows."""
+    `cdrl.analysis.report.evaluate_model` rows."""
     fig = Figure(figsize=bars_size(len(rows)))
     ax = fig.add_subplot()
     bars = (("train_bce", "model, train", "C0", None), ("test_bce", "model, held-out", "C1", None),
@@ -364,3 +365,12 @@ def plot_runs(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None,
         written.append(save_figure(rollout_figure(run, model, rollout), out / f"rollout_{stem}.png"))
     written.append(save_figure(bce_bars_figure(rows), out / "bce_bars.png"))
     return written
+
+
+def plot_sweep(sweep_dir: str | Path) -> Path | None:
+    """`curves.png` of a sweep directory: the loss curve of every configuration that logged a
+    step (None when none did)."""
+    sweep_dir = Path(sweep_dir)
+    logged = [load_run(d) for d in sorted(sweep_dir.iterdir())
+              if (d / "metrics.jsonl").is_file() and (d / "metrics.jsonl").stat().st_size > 0]
+    return save_figure(loss_figure(logged), sweep_dir / "curves.png") if logged else None

@@ -34,7 +34,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from cdrl.episode import Episode  # noqa: F401  (re-exported: the unit a data set stores)
+from cdrl.data.episode import Episode  # noqa: F401  (re-exported: the unit a data set stores)
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "cdrl-episodes"
@@ -248,7 +248,7 @@ def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size:
     import jax
     import jax.numpy as jnp
 
-    from cdrl.online import resize_obs
+    from cdrl.data.frames import resize_obs
     from envs import fastrng
     from envs.policies import get_policy
     from envs.slither import Slither

@@ -1,0 +1,152 @@
+"""The contract every model variant keeps, and the pieces variants share.
+
+A variant is a frozen (hashable) object holding only the static `ArchConfig`; it is passed
+to `jit` as a static argument. Its contract:
+
+- `init(key) -> params`, `init_carry(batch) -> carry`;
+- `step(params, carry, x_t) -> (carry, out_t)` with `x_t` a `StepInput` of one time step;
+  episode resets are a mask inside the step (`x_t.is_first` selects the initial carry);
+- `unroll(params, carry, xs) -> (carry, outs)` over time-major `[T, B, ...]` inputs: by
+  default one `jax.lax.scan` of `step`; open-loop variants fuse it (encoder and decoder run
+  over all T frames at once, only the recurrent core is scanned) and tests pin the fused
+  path against the scan;
+- `loss_terms(params, xs, outs, next_obs, next_reward) -> dict` of scalar terms, combined with a matching
+  dict of weights (`default_loss_weights`), so that metrics-only terms carry weight 0.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from cdrl.models import nets
+from cdrl.models.arch import ArchConfig
+
+Carry = Any
+Outputs = dict
+
+
+@flax.struct.dataclass
+class StepInput:
+    """What the model sees at time t (each `[B, ...]`, or `[T, B, ...]` for an unroll)."""
+
+    obs: jax.Array  # [B, H, W] float in [0, 1]
+    action: jax.Array  # [B, action_dim] in [0, 1]; a_t, taken after seeing o_t
+    is_first: jax.Array  # [B] bool: o_t starts a new episode, so the carry resets
+
+
+def reset_where(is_first: jax.Array, initial: Carry, carry: Carry) -> Carry:
+    """Per batch element, the initial carry where `is_first`, else the carried one."""
+
+    def pick(init, cur):
+        mask = is_first.reshape(is_first.shape + (1,) * (cur.ndim - 1))
+        return jnp.where(mask, init, cur)
+
+    return jax.tree.map(pick, initial, carry)
+
+
+def bce_with_logits(logits: jax.Array, target: jax.Array) -> jax.Array:
+    """Binary cross-entropy of sigmoid(logits) against `target` in [0, 1], averaged."""
+    return jnp.mean(jax.nn.softplus(logits) - target * logits)
+
+
+def _flat(fn, x: jax.Array, n_trailing: int) -> jax.Array:
+    """Apply a `[N, ...] -> [N, ...]` network to an array with any leading dims."""
+    lead = x.shape[: x.ndim - n_trailing]
+    y = fn(x.reshape((-1,) + x.shape[x.ndim - n_trailing:]))
+    return y.reshape(lead + y.shape[1:])
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """Base class: see the module docstring for the contract."""
+
+    arch: ArchConfig
+    name: ClassVar[str] = ""
+    uses_action: ClassVar[bool] = False
+    # Variants whose predicted code lives in the input code's space (thesis figure 5.6).
+    shared_code_space: ClassVar[bool] = False
+    # Variants with a controller D_a; `cdrl train` trains them online against the game.
+    has_controller: ClassVar[bool] = False
+
+    # ---- parameters and carries
+    def init(self, key: jax.Array) -> dict:
+        raise NotImplementedError
+
+    def init_carry(self, batch: int) -> Carry:
+        raise NotImplementedError
+
+    def core_in_size(self) -> int:
+        return self.arch.obs_code + (self.arch.action_code if self.uses_action else 0)
+
+    def _init_common(self, key: jax.Array, recurrent: bool = True) -> dict:
+        a = self.arch
+        k = jax.random.split(key, 5)
+        params = {
+            "obs_enc": nets.init_obs_encoder(k[0], a),
+            "obs_dec": nets.init_obs_decoder(k[1], a),
+        }
+        hidden = a.lstm_size if recurrent else self.core_in_size()
+        if recurrent:
+            params["lstm"] = nets.init_lstm(k[2], self.core_in_size(), a.lstm_size)
+        params["fc"] = nets.init_mlp(k[3], (hidden, a.obs_code), final_selu=True)
+        if self.uses_action:
+            params["act_enc"] = nets.init_mlp(
+                k[4], (a.action_dim, *a.action_hidden, a.action_code), final_selu=True
+            )
+        return params
+
+    # ---- time
+    def step(self, params: dict, carry: Carry, x: StepInput) -> tuple[Carry, Outputs]:
+        raise NotImplementedError
+
+    def unroll(self, params: dict, carry: Carry, xs: StepInput) -> tuple[Carry, Outputs]:
+        return jax.lax.scan(lambda c, x: self.step(params, c, x), carry, xs)
+
+    # ---- losses
+    def default_loss_weights(self) -> dict[str, float]:
+        weights = {"obs_bce": 1.0}
+        if self.shared_code_space:
+            weights["code_pred_mse"] = 0.0
+        return weights
+
+    def loss_terms(
+        self, params: dict, xs: StepInput, outs: Outputs, next_obs: jax.Array, next_reward: jax.Array
+    ) -> dict:
+        terms = {"obs_bce": bce_with_logits(outs["logits"], next_obs)}
+        if self.shared_code_space:
+            terms["code_pred_mse"] = code_prediction_error(outs, xs.is_first)
+        return terms
+
+    # ---- shared pieces
+    def encode(self, params: dict, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """Input code k_t for frames `[..., H, W]` (and actions `[..., A]`)."""
+        k = _flat(lambda o: nets.obs_encoder(params["obs_enc"], self.arch, o), obs, 2)
+        if self.uses_action:
+            ka = nets.mlp(params["act_enc"], action, final_selu=True)
+            k = jnp.concatenate([k, ka], axis=-1)
+        return k
+
+    def decode(self, params: dict, code: jax.Array) -> jax.Array:
+        """Logits of the predicted frame for codes `[..., obs_code]`."""
+        return _flat(lambda d: nets.obs_decoder_logits(params["obs_dec"], self.arch, d), code, 1)
+
+    def fc(self, params: dict, h: jax.Array) -> jax.Array:
+        return nets.mlp(params["fc"], h, final_selu=True)
+
+    def _outputs(self, params: dict, k: jax.Array, d: jax.Array) -> Outputs:
+        """Read out the core's output code `d` (input code `k` kept for the metrics)."""
+        return {"logits": self.decode(params, d), "code": k, "pred_code": d}
+
+
+def code_prediction_error(outs: Outputs, is_first: jax.Array) -> jax.Array:
+    """MSE(d_{t+1}, k_{t+1}) over the pairs inside the chunk that do not cross an episode start."""
+    pred, code = outs["pred_code"][:-1], outs["code"][1:, ..., : outs["pred_code"].shape[-1]]
+    valid = (~is_first[1:]).astype(pred.dtype)[..., None]
+    err = jnp.square(pred - code) * valid
+    return jnp.sum(err) / jnp.maximum(jnp.sum(valid) * pred.shape[-1], 1.0)
+
+

@@ -1,0 +1,179 @@
+"""The observation-predicting variants of the thesis (SPEC section 4), each a pure step
+function scanned over time: baseline_ff, baseline_recurrent, main, main_action, residual,
+residual_error, closed_loop_plus, closed_loop_minus. The controller variants are in
+`cdrl.models.controller`; the registry of both is `cdrl.models.VARIANTS`.
+"""
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from cdrl.models import nets
+from cdrl.models.base import Carry, Variant, bce_with_logits, code_prediction_error, reset_where
+
+class OpenLoop(Variant):
+    """Variants whose input does not depend on their own predictions.
+
+    `step` is encode -> recur -> decode; `unroll` runs the encoder and decoder over all T
+    frames at once and scans only `recur`, the recurrent core.
+    """
+
+    def recur(self, params: dict, carry: Carry, k: jax.Array, is_first: jax.Array):
+        raise NotImplementedError
+
+    def step(self, params, carry, x):
+        k = self.encode(params, x.obs, x.action)
+        carry, d = self.recur(params, carry, k, x.is_first)
+        return carry, self._outputs(params, k, d)
+
+    def unroll(self, params, carry, xs):
+        ks = self.encode(params, xs.obs, xs.action)
+        carry, ds = jax.lax.scan(
+            lambda c, kx: self.recur(params, c, kx[0], kx[1]), carry, (ks, xs.is_first)
+        )
+        return carry, self._outputs(params, ks, ds)
+
+
+class BaselineFF(OpenLoop):
+    """Figure 4.2: k_t = E_o(o_t); d = FC(k_t); prediction D_o(d). No recurrence."""
+
+    name = "baseline_ff"
+
+    def init(self, key):
+        return self._init_common(key, recurrent=False)
+
+    def init_carry(self, batch):
+        return ()
+
+    def recur(self, params, carry, k, is_first):
+        return carry, self.fc(params, k)
+
+
+class Main(OpenLoop):
+    """Figure 3.2: k_t = E_o(o_t); h_t = LSTM(k_t); d_{t+1} = FC(h_t); prediction D_o(d_{t+1})."""
+
+    name = "main"
+
+    def init(self, key):
+        return self._init_common(key)
+
+    def init_carry(self, batch):
+        return nets.lstm_zeros(batch, self.arch.lstm_size)
+
+    def recur(self, params, carry, k, is_first):
+        carry = reset_where(is_first, self.init_carry(k.shape[0]), carry)
+        carry = nets.lstm_cell(params["lstm"], carry, k)
+        return carry, self.fc(params, carry.h)
+
+
+class MainAction(Main):
+    """Figure 3.3: as main, with k_t = E_o(o_t) ++ E_a(a_t)."""
+
+    name = "main_action"
+    uses_action = True
+
+
+class Residual(Main):
+    """Figure 4.4: d_{t+1} = k_t + FC(LSTM(k_t))."""
+
+    name = "residual"
+    shared_code_space = True
+
+    def recur(self, params, carry, k, is_first):
+        carry, delta = super().recur(params, carry, k, is_first)
+        return carry, k + delta
+
+
+class ResidualError(Main):
+    """Figure 4.5: e_t = k_t - d_t (d_0 = 0); d_{t+1} = k_t + FC(LSTM(e_t))."""
+
+    name = "residual_error"
+    shared_code_space = True
+
+    def init_carry(self, batch):
+        return {"lstm": super().init_carry(batch), "pred_code": jnp.zeros((batch, self.arch.obs_code))}
+
+    def recur(self, params, carry, k, is_first):
+        carry = reset_where(is_first, self.init_carry(k.shape[0]), carry)
+        lstm = nets.lstm_cell(params["lstm"], carry["lstm"], k - carry["pred_code"])
+        d = k + self.fc(params, lstm.h)
+        return {"lstm": lstm, "pred_code": d}, d
+
+
+class BaselineRecurrent(Main):
+    """Figure 4.3, two stages sharing one program: an autoencoder D_o(E_o(o_t)) trained on
+    reconstruction ('recon_bce'), and an LSTM+FC trained on the frozen codes with MSE
+    ('code_mse'). The stages are loss-weight settings (`stage_loss_weights`); 'obs_bce',
+    BCE(D_o(d_{t+1}), o_{t+1}), is the comparable evaluation metric (weight 0)."""
+
+    name = "baseline_recurrent"
+    shared_code_space = True
+
+    def recur(self, params, carry, k, is_first):
+        return super().recur(params, carry, jax.lax.stop_gradient(k), is_first)
+
+    def _outputs(self, params, k, d):
+        out = super()._outputs(params, k, d)
+        out["recon_logits"] = self.decode(params, k)
+        return out
+
+    def default_loss_weights(self):
+        return self.stage_loss_weights()[0]
+
+    def stage_loss_weights(self) -> tuple[dict[str, float], ...]:
+        """Stage 1 trains the autoencoder, stage 2 the LSTM+FC on its frozen codes."""
+        base = {"obs_bce": 0.0, "code_pred_mse": 0.0}
+        return (
+            {**base, "recon_bce": 1.0, "code_mse": 0.0},
+            {**base, "recon_bce": 0.0, "code_mse": 1.0},
+        )
+
+    def loss_terms(self, params, xs, outs, next_obs, next_reward):
+        terms = super().loss_terms(params, xs, outs, next_obs, next_reward)
+        terms["recon_bce"] = bce_with_logits(outs["recon_logits"], xs.obs)
+        target = jax.lax.stop_gradient(self.encode(params, next_obs, None))
+        terms["code_mse"] = jnp.mean(jnp.square(outs["pred_code"] - target))
+        return terms
+
+
+class ClosedLoop(Variant):
+    """Figures 4.6 / 4.7: the input is o_t + sign * õ_t (õ_0 = 0), then the main model.
+
+    The fed-back prediction õ_t keeps its gradient (no stop-gradient): errors flow back
+    through it into the previous step's decoder, core and encoder.
+    """
+
+    sign: ClassVar[float] = 1.0
+
+    def init(self, key):
+        return self._init_common(key)
+
+    def init_carry(self, batch):
+        size = self.arch.image_size
+        return {
+            "lstm": nets.lstm_zeros(batch, self.arch.lstm_size),
+            "pred_obs": jnp.zeros((batch, size, size), jnp.float32),
+        }
+
+    def step(self, params, carry, x):
+        carry = reset_where(x.is_first, self.init_carry(x.obs.shape[0]), carry)
+        k = self.encode(params, x.obs + self.sign * carry["pred_obs"], x.action)
+        lstm = nets.lstm_cell(params["lstm"], carry["lstm"], k)
+        out = self._outputs(params, k, self.fc(params, lstm.h))
+        return {"lstm": lstm, "pred_obs": jax.nn.sigmoid(out["logits"])}, out
+
+
+class ClosedLoopPlus(ClosedLoop):
+    name = "closed_loop_plus"
+    sign = 1.0
+
+
+class ClosedLoopMinus(ClosedLoop):
+    name = "closed_loop_minus"
+    sign = -1.0
+
+
+OBSERVATION_VARIANTS = (BaselineFF, BaselineRecurrent, Main, MainAction, Residual, ResidualError,
+                        ClosedLoopPlus, ClosedLoopMinus)

@@ -1,0 +1,163 @@
+"""The run directory: one place that knows what a run writes and how.
+
+    config.json       the full resolved `RunConfig`
+    metrics.jsonl     one record per training step (loss, terms, norm ratios, frames/s)
+    eval.jsonl        held-out evaluations (or policy comparisons for controller runs)
+    checkpoints/      orbax checkpoints (`cdrl.runs.checkpoint`)
+    plots/            figures written by `cdrl plot`
+
+Offline runs, online runs and every configuration of a sweep use `RunDir`; readers
+(`cdrl eval`, `cdrl plot`, `cdrl.analysis.report`) read through it too.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from cdrl.runs.checkpoint import CheckpointError, Checkpoints
+from cdrl.runs.config import RESUMABLE, RunConfig
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write `text` to `path` through a temporary file and a rename: readers see the old or
+    the new content, never a part."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class RunLog:
+    """An append-only JSON-lines file of records with a `step`, cut back to a step on resume."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def read(self) -> list[dict]:
+        """The complete records. A truncated last line (a write cut off by a kill) is dropped;
+        a malformed line elsewhere is an error naming the file and line."""
+        if not self.path.is_file():
+            return []
+        lines = [line for line in self.path.read_text().splitlines() if line.strip()]
+        records = []
+        for i, line in enumerate(lines):
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError as exc:
+                if i == len(lines) - 1:
+                    break
+                raise ValueError(f"{self.path}: line {i + 1} is not valid JSON ({exc})") from None
+        return records
+
+    def truncate(self, before_step: int) -> None:
+        """Keep only the records of steps before `before_step` (and drop a torn last line)."""
+        if not self.path.exists():
+            return
+        keep = [r for r in self.read() if r["step"] < before_step]
+        atomic_write_text(self.path, "".join(json.dumps(r) + "\n" for r in keep))
+
+    def append(self, records: list[dict]) -> None:
+        with open(self.path, "a") as f:
+            for record in records:
+                f.write(json.dumps(record) + "\n")
+
+
+def _check_compatible(cfg: RunConfig):
+    # A field the checkpoint's config lacks (added to RunConfig later) had its default.
+    defaults = dataclasses.asdict(RunConfig())
+
+    def check(meta):
+        saved = {**defaults, **meta.get("config", {})}
+        diffs = [
+            f"{k}: checkpoint has {saved[k]!r}, run has {v!r}"
+            for k, v in dataclasses.asdict(cfg).items()
+            if k not in RESUMABLE and saved[k] != v
+        ]
+        if diffs:
+            raise CheckpointError("the checkpoint comes from an incompatible config: " + "; ".join(diffs))
+
+    return check
+
+
+@dataclasses.dataclass(frozen=True)
+class Opened:
+    """A run ready to train: its state (restored when resuming), the step to start from, the
+    checkpoint's metadata (None for a fresh run) and the checkpoints."""
+
+    state: Any
+    start: int
+    meta: dict | None
+    checkpoints: Checkpoints
+
+
+class RunDir:
+    """The files of one run (see the module docstring)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.config_path = self.path / "config.json"
+        self.metrics = RunLog(self.path / "metrics.jsonl")
+        self.evals = RunLog(self.path / "eval.jsonl")
+        self.checkpoint_dir = self.path / "checkpoints"
+        self.plots_dir = self.path / "plots"
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.path)!r})"
+
+    def has_run(self) -> bool:
+        return self.config_path.is_file()
+
+    def read_config(self) -> RunConfig:
+        """The run's config. FileNotFoundError if the directory does not exist, ValueError if
+        it holds no run or its config.json is not a valid one."""
+        if not self.path.is_dir():
+            raise FileNotFoundError(f"run directory {self.path} does not exist")
+        if not self.config_path.is_file():
+            raise ValueError(f"{self.path} is not a run directory: it has no config.json "
+                                    "(make one with `cdrl train --run-dir`)")
+        try:
+            return RunConfig(**json.loads(self.config_path.read_text()))
+        except (json.JSONDecodeError, TypeError) as exc:
+            raise ValueError(f"{self.config_path} is not a valid run config: {exc}") from None
+
+    def write_config(self, cfg: RunConfig) -> None:
+        self.path.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.config_path, json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+
+    def config_for(self, cfg: RunConfig | None, resume: bool, overrides: dict | None = None) -> RunConfig:
+        """The config a `train` of this directory runs with: `cfg` for a new run (refused if
+        the directory already holds one), the saved config with `overrides` when resuming."""
+        if resume:
+            if not self.has_run():
+                raise FileNotFoundError(f"cannot resume: {self.config_path} does not exist")
+            saved = dataclasses.asdict(self.read_config())
+            return RunConfig(**{**saved, **(overrides or {})})
+        if cfg is None:
+            raise ValueError("a new run needs a config (or resume an existing one)")
+        if self.has_run():
+            raise FileExistsError(f"{self.path} already holds a run; use --resume to continue it or pick another --run-dir")
+        return cfg
+
+    def checkpoints(self, keep: int = 3) -> Checkpoints:
+        return Checkpoints(self.checkpoint_dir, keep=keep)
+
+    def open(self, cfg: RunConfig, state, resume: bool) -> Opened:
+        """Write the config and, when resuming, restore `state` from the last good checkpoint
+        (an older one if the newest is corrupt) and cut the logs back to it."""
+        ckpts = self.checkpoints(cfg.keep_checkpoints)
+        start, meta = 0, None
+        if resume and ckpts.steps():
+            state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
+            for w in warnings:
+                print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+            start = int(meta["step"])
+        self.write_config(cfg)
+        self.metrics.truncate(start)
+        self.evals.truncate(start + 1)
+        return Opened(state=state, start=start, meta=meta, checkpoints=ckpts)

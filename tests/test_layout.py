@@ -1,0 +1,70 @@
+"""The package's layering: no import cycle between cdrl's modules, and each sub-package
+imports only from the layers below it (the order in `cdrl/__init__.py`'s docstring)."""
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent / "cdrl"
+LAYERS = ["models", "data", "training", "evaluation", "runs", "analysis", "cli"]
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def cdrl_imports(path: Path) -> set[str]:
+    """Every cdrl module `path` imports, at any depth of the file (lazy imports count)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.startswith("cdrl")}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cdrl"):
+            # `from cdrl.models import nets` imports the module cdrl.models.nets
+            subs = {f"{node.module}.{a.name}" for a in node.names
+                    if (ROOT.parent / Path(*node.module.split("."), a.name + ".py")).exists()}
+            found |= subs if len(subs) == len(node.names) else subs | {node.module}
+    return found
+
+
+MODULES = {module_name(p): p for p in ROOT.rglob("*.py")}
+# A module's own parent packages are imported before it by Python itself: not edges.
+GRAPH = {m: {i for i in cdrl_imports(p) if i in MODULES and i != m and not m.startswith(i + ".")}
+         for m, p in MODULES.items()}
+
+
+def layer(module: str) -> int | None:
+    parts = module.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 and parts[1] in LAYERS else None
+
+
+def test_no_import_cycle():
+    state: dict[str, int] = {}
+
+    def visit(m, path):
+        if state.get(m) == 1:
+            cycle = path[path.index(m):] + [m]
+            pytest.fail("import cycle: " + " -> ".join(cycle))
+        if state.get(m) == 2:
+            return
+        state[m] = 1
+        for n in sorted(GRAPH[m]):
+            visit(n, path + [m])
+        state[m] = 2
+
+    for m in sorted(GRAPH):
+        visit(m, [])
+
+
+def test_subpackages_import_only_lower_layers():
+    wrong = [f"{m} imports {n}" for m, deps in GRAPH.items() for n in deps
+             if layer(m) is not None and layer(n) is not None and layer(n) > layer(m)]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_checker_sees_imports():
+    """The graph is not empty by accident: known edges are present."""
+    assert "cdrl.models.nets" in GRAPH["cdrl.models.base"]
+    assert "cdrl.runs.rundir" in GRAPH["cdrl.runs.offline"]
+    assert "cdrl.runs.train" in GRAPH["cdrl.cli"]  # a lazy import inside a function
