@@ -20,11 +20,23 @@ def _cli(*args):
     return [sys.executable, "-m", "cdrl.cli", *args]
 
 
-def _losses(run_dir: Path) -> list[float]:
+def _records(run_dir: Path) -> list[dict]:
     lines = (run_dir / "metrics.jsonl").read_text().splitlines()
     records = [json.loads(line) for line in lines]
     assert [r["step"] for r in records] == list(range(len(records)))
-    return [r["loss"] for r in records]
+    return records
+
+
+def _losses(run_dir: Path) -> list[float]:
+    return [r["loss"] for r in _records(run_dir)]
+
+
+def _finished_checkpoints(ckpt_dir: Path) -> list[int]:
+    """Steps of the checkpoints orbax has finished: it writes each one to a temporary
+    directory ('<step>.orbax-checkpoint-tmp-...') and renames it to '<step>' when complete."""
+    if not ckpt_dir.exists():
+        return []
+    return sorted(int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit())
 
 
 def test_sigkill_and_resume_give_the_same_losses(tmp_path):
@@ -36,24 +48,37 @@ def test_sigkill_and_resume_give_the_same_losses(tmp_path):
                                  "--checkpoint-every", "10"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     ckpt = killed / "checkpoints"
-    while time.time() < deadline:
-        if ckpt.exists() and len([p for p in ckpt.iterdir() if p.name.isdigit()]) >= 2:
-            break
-        time.sleep(0.2)
+    while time.time() < deadline and proc.poll() is None and len(_finished_checkpoints(ckpt)) < 2:
+        time.sleep(0.05)
+    finished = _finished_checkpoints(ckpt)
+    assert proc.poll() is None, "the run ended before it was killed"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    # The kill landed after at least two finished checkpoints (else the resumed run would
+    # start from step 0 and, being deterministic, match anyway).
+    assert len(finished) >= 2, f"no finished checkpoint before the kill: {finished}"
     assert (killed / "config.json").exists()
+    newest = max(_finished_checkpoints(ckpt))
+    assert 20 <= newest < 60
+    # The records of the steps before `newest` (the kill may have torn a later line).
+    before = [json.loads(line) for line in (killed / "metrics.jsonl").read_text().splitlines()[:newest]]
+    assert [r["step"] for r in before] == list(range(newest))
 
     result = subprocess.run(_cli("train", "--resume", str(killed), "--steps", "60"), capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     a, b = _losses(straight), _losses(killed)
     assert len(a) == len(b) == 60
     assert max(abs(x - y) for x, y in zip(a, b)) <= 1e-6
+    # The resumed run started from checkpoint `newest`: the records of the steps before it are
+    # still the killed process's own, frames/s (a wall-clock measurement, different had the
+    # steps been run again) included.
+    assert _records(killed)[:newest] == before
 
 
 def test_corrupt_checkpoint_falls_back_to_an_older_one(tmp_path, capsys):
     run = tmp_path / "run"
     assert cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--steps", "20", "--checkpoint-every", "10"]) == 0
+    before = _records(run)
     newest = run / "checkpoints" / "20"
     for path in newest.rglob("*"):
         if path.is_file():
@@ -62,19 +87,28 @@ def test_corrupt_checkpoint_falls_back_to_an_older_one(tmp_path, capsys):
     assert cli_main(["train", "--resume", str(run), "--steps", "30"]) == 0
     err = capsys.readouterr().err
     assert "checkpoints/20" in err and "older checkpoint" in err
-    assert len(_losses(run)) == 30
+    after = _records(run)
+    assert len(after) == 30
+    # It went on from checkpoint 10: steps 0-9 keep their records (frames/s, a wall-clock
+    # measurement, included), steps 10-19 were run again from the restored state and give
+    # the same losses as the first time.
+    assert after[:10] == before[:10]
+    assert [r["fps"] for r in after[10:20]] != [r["fps"] for r in before[10:20]]
+    assert max(abs(a["loss"] - b["loss"]) for a, b in zip(after[10:20], before[10:20])) <= 1e-6
 
 
 def test_incompatible_config_is_refused_and_loses_nothing(tmp_path, capsys):
     run = tmp_path / "run"
     assert cli_main(["train", "--run-dir", str(run), *SMALL_RUN, "--steps", "10", "--checkpoint-every", "10"]) == 0
     before = (run / "config.json").read_text()
+    metrics_before = (run / "metrics.jsonl").read_text()
     capsys.readouterr()
     assert cli_main(["train", "--resume", str(run), "--lr", "0.01", "--steps", "20"]) == 2
     err = capsys.readouterr().err
     assert "incompatible config" in err and "lr: checkpoint has 0.3, run has 0.01" in err
     assert (run / "config.json").read_text() == before
-    assert (run / "checkpoints" / "10").exists()
+    assert (run / "metrics.jsonl").read_text() == metrics_before and len(metrics_before.splitlines()) == 10
+    assert _finished_checkpoints(run / "checkpoints") == [10]
 
 
 def test_metrics_file_parses_and_loss_falls(tmp_path):
