@@ -14,6 +14,7 @@ from cdrl.data import store as ds
 from cdrl.data.episode import Episode
 from cdrl.data.store import DatasetError, EpisodeDataset, collect, record_gym, split_episodes
 from envs import fastrng
+from envs.policies import get_policy
 from envs.gym_env import game_for
 
 SMALL = dict(policy="uniform", seed=7, max_steps=12, batch_size=4, chunk_steps=8, progress=False)
@@ -53,6 +54,28 @@ def test_episode_validates_shapes_dtypes_and_ranges():
             Episode(**kwargs)
 
 
+def _replay(game, params, seed, index):
+    """Episode `index` of a uniform-policy collection with `seed`, played one step at a time
+    by the jitted game: its key is fold_in(PRNGKey(seed), index), split into reset, policy
+    and run keys; every step splits the run key into (next, policy, game) keys. Returns the
+    frames (uint8), actions and rewards (r_0 = 0), up to the frame that ends the game."""
+    policy = get_policy("uniform")
+    k_reset, k_policy, key = fastrng.split(fastrng.fold_in(jax.random.PRNGKey(seed), index), 3)
+    obs, state = game.jit.reset(k_reset, params)
+    pstate = policy.init(k_policy)
+    frames, actions, rewards, done = [], [], [np.float32(0.0)], False
+    while True:
+        key, k_act, k_game = fastrng.split(key, 3)
+        action, pstate = policy.step(k_act, pstate, obs)
+        frames.append(np.round(np.asarray(obs) * 255).astype(np.uint8))
+        actions.append(np.asarray(action, np.float32))
+        if done:
+            return np.stack(frames), np.stack(actions), np.asarray(rewards, np.float32)
+        obs, state, reward, terminated, truncated, _ = game.jit.step(k_game, state, action, params)
+        rewards.append(np.float32(reward))
+        done = bool(terminated) or bool(truncated)
+
+
 def test_round_trip_matches_the_game(collected):
     path, manifest = collected
     assert manifest["complete"] and len(manifest["episodes"]) == 10
@@ -69,9 +92,13 @@ def test_round_trip_matches_the_game(collected):
         assert ep.actions.dtype == np.float32 and ep.actions.shape == (len(ep), 3)
         assert ((ep.actions > 0.02) & (ep.actions < 0.98)).any()
         assert ep.rewards[0] == 0.0
-        k_reset = fastrng.split(fastrng.fold_in(jax.random.PRNGKey(7), i), 3)[0]
-        obs, _ = game.jit.reset(k_reset, params)
-        np.testing.assert_array_equal(ep.frames[0], np.round(np.asarray(obs) * 255).astype(np.uint8))
+        # The whole episode, every frame, action and reward, against the game played step by
+        # step (the collection ran batches of 4 games in chunks of 8 steps).
+        frames, actions, rewards = _replay(game, params, 7, i)
+        assert len(ep) == len(frames)
+        np.testing.assert_array_equal(ep.frames, frames)
+        np.testing.assert_array_equal(ep.actions, actions)
+        np.testing.assert_array_equal(ep.rewards, rewards)
         if len(ep) == 13:
             assert manifest["config"]["max_steps"] == 12
         assert not np.array_equal(ep.frames[0], ep.frames[1])
