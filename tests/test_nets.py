@@ -7,7 +7,7 @@ import pytest
 
 from cdrl.models import make_variant, nets
 from cdrl.models.arch import THESIS, ArchConfig, ConvSpec, preset
-from cdrl.models.base import StepInput
+from cdrl.models.base import StepInput, bce_with_logits
 
 
 def test_thesis_table_sizes():
@@ -20,31 +20,6 @@ def test_thesis_table_sizes():
     ]
 
 
-def test_every_intermediate_size_of_the_thesis_networks():
-    """Run the real layers one by one (abstractly) and pin each output shape."""
-    arch = THESIS
-    params = jax.eval_shape(lambda: {
-        "enc": nets.init_obs_encoder(jax.random.PRNGKey(0), arch),
-        "dec": nets.init_obs_decoder(jax.random.PRNGKey(0), arch),
-    })
-    x = jax.ShapeDtypeStruct((1, 150, 150, 1), jnp.float32)
-    enc_shapes = []
-    for i, spec in enumerate(arch.encoder):
-        x = jax.eval_shape(
-            lambda x, k: jax.lax.conv_general_dilated(
-                x, k, (spec.stride,) * 2, [(spec.padding,) * 2] * 2,
-                dimension_numbers=("NHWC", "HWIO", "NHWC")),
-            x, params["enc"][f"conv{i}"]["kernel"])
-        enc_shapes.append(x.shape[1:])
-    assert enc_shapes == [(76, 76, 16), (38, 38, 16), (20, 20, 32), (10, 10, 64), (5, 5, 128), (1, 1, 512)]
-    dec_shapes = []
-    for i, spec in enumerate(reversed(arch.encoder)):
-        x = jax.eval_shape(lambda x, k: nets.conv_transpose(x, k, spec.stride, spec.padding),
-                           x, params["dec"][f"deconv{i}"]["kernel"])
-        dec_shapes.append(x.shape[1:])
-    assert dec_shapes == [(5, 5, 128), (10, 10, 64), (20, 20, 32), (38, 38, 16), (76, 76, 16), (150, 150, 1)]
-
-
 def _naive_conv_transpose(x, kernel, stride, padding):
     """PyTorch ConvTranspose2d by its definition: scatter every input pixel times the kernel."""
     n, h, w, _ = x.shape
@@ -55,6 +30,74 @@ def _naive_conv_transpose(x, kernel, stride, padding):
             full[:, i * stride:i * stride + k, j * stride:j * stride + k] += np.einsum(
                 "nc,yxco->nyxo", x[:, i, j], kernel)
     return full[:, padding:full.shape[1] - padding, padding:full.shape[2] - padding]
+
+
+def _selu(x):
+    """SELU by its definition (Klambauer et al. 2017), float64."""
+    alpha, scale = 1.6732632423543772, 1.0507009873554805
+    return scale * np.where(x > 0, x, alpha * np.expm1(np.minimum(x, 0)))
+
+
+def _xla_conv(x, kernel, stride, padding):
+    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), [(padding, padding)] * 2,
+                                        dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+def test_every_intermediate_size_of_the_thesis_networks():
+    """Run the real layers, `nets.conv2d` and `nets.conv_transpose`, one by one on thesis-sized
+    inputs: each output's shape is the thesis table's (150 -> 76 -> 38 -> 20 -> 10 -> 5 -> 1
+    and back), each output's values equal an independent reference (XLA's convolution in
+    float64; the transposed convolution by its definition, in float64), and
+    `nets.obs_encoder` / `nets.obs_decoder_logits` equal the layers chained with SELU."""
+    arch = THESIS
+    rng = np.random.default_rng(0)
+    conv2d = jax.jit(nets.conv2d, static_argnums=(2, 3))
+    conv_transpose = jax.jit(nets.conv_transpose, static_argnums=(2, 3))
+
+    def layer(k, c_in, c_out):  # LeCun-scaled kernel, non-zero bias (the chained networks must add it)
+        return {"kernel": jnp.asarray(rng.normal(0, (k * k * c_in) ** -0.5, (k, k, c_in, c_out)), jnp.float32),
+                "bias": jnp.asarray(rng.normal(0, 0.1, c_out), jnp.float32)}
+
+    # The parameter trees as the layer table gives them (random values: the eager
+    # initialisers take seconds at this size); the decoder mirrors the encoder.
+    chans = [1, 16, 16, 32, 64, 128, 512]
+    enc = {f"conv{i}": layer(s.kernel, chans[i], chans[i + 1]) for i, s in enumerate(arch.encoder)}
+    dec = {f"deconv{i}": layer(s.kernel, chans[-1 - i], chans[-2 - i]) for i, s in enumerate(reversed(arch.encoder))}
+    shapes = jax.eval_shape(lambda: (nets.init_obs_encoder(jax.random.PRNGKey(0), arch),
+                                     nets.init_obs_decoder(jax.random.PRNGKey(0), arch)))
+    assert jax.tree.map(lambda a: a.shape, shapes) == jax.tree.map(lambda a: a.shape, (enc, dec))
+
+    frames = rng.uniform(size=(1, 150, 150)).astype(np.float32)
+    x = frames[..., None].astype(np.float64)
+    enc_shapes = []
+    for i, spec in enumerate(arch.encoder):
+        layer = enc[f"conv{i}"]
+        got = np.asarray(conv2d(jnp.asarray(x, jnp.float32), layer["kernel"], spec.stride, spec.padding))
+        with jax.enable_x64(True):
+            want = np.asarray(_xla_conv(jnp.asarray(x), jnp.asarray(layer["kernel"], jnp.float64),
+                                        spec.stride, spec.padding))
+        assert got.shape == want.shape, (i, got.shape, want.shape)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5 * np.abs(want).max(), err_msg=f"conv{i}")
+        enc_shapes.append(got.shape[1:])
+        x = _selu(want + np.asarray(layer["bias"], np.float64))
+    assert enc_shapes == [(76, 76, 16), (38, 38, 16), (20, 20, 32), (10, 10, 64), (5, 5, 128), (1, 1, 512)]
+    code = np.asarray(jax.jit(nets.obs_encoder, static_argnums=1)(enc, arch, jnp.asarray(frames)))
+    np.testing.assert_allclose(code, x.reshape(1, -1), rtol=1e-4, atol=1e-5 * np.abs(x).max())
+
+    dec_shapes = []
+    for i, spec in enumerate(reversed(arch.encoder)):
+        layer = dec[f"deconv{i}"]
+        got = np.asarray(conv_transpose(jnp.asarray(x, jnp.float32), layer["kernel"], spec.stride, spec.padding))
+        want = _naive_conv_transpose(x, np.asarray(layer["kernel"], np.float64), spec.stride, spec.padding)
+        assert got.shape == want.shape, (i, got.shape, want.shape)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5 * np.abs(want).max(), err_msg=f"deconv{i}")
+        dec_shapes.append(got.shape[1:])
+        x = want + np.asarray(layer["bias"], np.float64)
+        if i < len(arch.encoder) - 1:
+            x = _selu(x)
+    assert dec_shapes == [(5, 5, 128), (10, 10, 64), (20, 20, 32), (38, 38, 16), (76, 76, 16), (150, 150, 1)]
+    logits = np.asarray(jax.jit(nets.obs_decoder_logits, static_argnums=1)(dec, arch, jnp.asarray(code)))
+    np.testing.assert_allclose(logits, x[..., 0], rtol=1e-4, atol=1e-4 * np.abs(x).max())
 
 
 @pytest.mark.parametrize("size,kernel,stride,padding", [(5, 4, 2, 1), (19, 4, 2, 2), (1, 5, 1, 0), (6, 3, 2, 0)])
@@ -148,11 +191,33 @@ def test_initialisation_scales():
 
 def test_thesis_sized_model_one_step():
     """The full-size model (main with action: the initialiser the test above compiled already):
-    one step from a zero carry gives a 150x150 frame in (0, 1)."""
+    its parameter count is the one the thesis's layer table gives, and one step from a zero
+    carry gives a 150x150 frame in (0, 1) whose BCE against a frame is finite and, at
+    initialisation (logits near 0), near ln 2."""
     v = make_variant("main_action", THESIS)
     params = jax.jit(v.init)(jax.random.PRNGKey(0))
-    x = StepInput(obs=jnp.full((1, 150, 150), 0.5), action=jnp.full((1, 3), 0.5),
-                           is_first=jnp.ones((1,), bool))
+
+    def conv(k, c_in, c_out):  # kernel k x k x c_in x c_out plus one bias per output channel
+        return k * k * c_in * c_out + c_out
+
+    def dense(n_in, n_out):
+        return n_in * n_out + n_out
+
+    by_hand = {
+        "obs_enc": conv(4, 1, 16) + conv(4, 16, 16) + conv(4, 16, 32) + conv(4, 32, 64) + conv(4, 64, 128)
+        + conv(5, 128, 512),
+        "obs_dec": conv(5, 512, 128) + conv(4, 128, 64) + conv(4, 64, 32) + conv(4, 32, 16) + conv(4, 16, 16)
+        + conv(4, 16, 1),
+        "lstm": (512 + 16) * 4 * 512 + 512 * 4 * 512 + 4 * 512,  # input k_t = 512 + 16, LSTM 512, 4 gates
+        "fc": dense(512, 512),
+        "act_enc": dense(3, 128) + dense(128, 128) + dense(128, 16),
+    }
+    assert {k: sum(x.size for x in jax.tree.leaves(p)) for k, p in params.items()} == by_hand
+    assert sum(by_hand.values()) == 6_044_305
+
+    rng = np.random.default_rng(0)
+    x = StepInput(obs=jnp.asarray(rng.uniform(size=(1, 150, 150)), jnp.float32), action=jnp.full((1, 3), 0.5),
+                  is_first=jnp.ones((1,), bool))
     carry, out = jax.jit(v.step)(params, v.init_carry(1), x)
     assert out["logits"].shape == (1, 150, 150)
     assert out["code"].shape == (1, 512 + 16) and out["pred_code"].shape == (1, 512)
@@ -160,6 +225,9 @@ def test_thesis_sized_model_one_step():
     pred = jax.nn.sigmoid(out["logits"])
     assert bool(jnp.all((pred > 0) & (pred < 1)))
     assert float(jnp.std(out["logits"])) > 0
+    target = jnp.asarray(rng.uniform(size=(1, 150, 150)), jnp.float32)
+    loss = float(bce_with_logits(out["logits"], target))
+    assert np.isfinite(loss) and abs(loss - np.log(2)) < 0.01, loss
 
 
 def test_bad_architecture_is_rejected():
