@@ -1,12 +1,14 @@
 """Every variant: its unroll equals a Python loop over its step, its gradients are right,
 and its data flow is the one of SPEC section 4."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from cdrl.models import VARIANTS, make_variant
+from cdrl.models import VARIANTS, make_variant, nets
 from cdrl.models.arch import TINY
 from cdrl.models.base import StepInput
 from cdrl.training.optim import HParams
@@ -43,6 +45,77 @@ def test_unroll_equals_python_loop(name):
     for key in outs_loop:
         np.testing.assert_allclose(outs_scan[key], outs_loop[key], rtol=1e-5, atol=1e-6, err_msg=key)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), carry_scan, carry)
+
+
+# The sign of the fed-back prediction in x_t = o_t + sign * õ_t (SPEC section 4, figures 4.6,
+# 4.7 and 6.1), written out here rather than read from the classes.
+CLOSED_LOOP_SIGNS = {"closed_loop_plus": 1.0, "closed_loop_minus": -1.0, "final_proposal": -1.0}
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _closed_loop_step_by_hand(name, params, h, c, fed, obs, action, sign):
+    """One step of one stream (batch 1) of the closed-loop data flow, composed from the
+    networks of `cdrl.models.nets`: x_t = o_t + sign * õ_t; k_t = E_o(x_t) (++ E_a(a_t) for
+    final_proposal); h_t = LSTM(k_t); d = FC(h_t), split for final_proposal into the
+    observation, action and reward codes; logits = D_o(observation code); õ_{t+1} =
+    sigmoid(logits)."""
+    arch = ARCH
+    k = nets.obs_encoder(params["obs_enc"], arch, obs + sign * fed)
+    if name == "final_proposal":
+        k = jnp.concatenate([k, nets.mlp(params["act_enc"], action, final_selu=True)], -1)
+    h, c = nets.lstm_cell(params["lstm"], nets.LSTMState(h, c), k)
+    d = nets.mlp(params["fc"], h, final_selu=True)
+    out = {}
+    if name == "final_proposal":
+        o, a = arch.obs_code, arch.obs_code + arch.action_code
+        out["action"] = jax.nn.sigmoid(nets.mlp(params["act_dec"], d[:, o:a], final_selu=False))
+        out["reward"] = nets.mlp(params["reward_head"], d[:, a:], final_selu=False)[:, 0]
+        d = d[:, :o]
+    out["logits"] = nets.obs_decoder_logits(params["obs_dec"], arch, d)
+    return h, c, jax.nn.sigmoid(out["logits"]), out
+
+
+def _closed_loop_by_hand(name, params, xs, sign):
+    """The closed loop run one stream and one step at a time; at an episode start (and at
+    t = 0) the LSTM state and the fed-back õ are zero. Outputs `[T, B, ...]`."""
+    T, B = xs.is_first.shape
+    zeros = (jnp.zeros((1, ARCH.lstm_size)), jnp.zeros((1, ARCH.lstm_size)),
+             jnp.zeros((1, ARCH.image_size, ARCH.image_size)))
+    outs = [[None] * B for _ in range(T)]
+    for b in range(B):
+        h, c, fed = zeros
+        for t in range(T):
+            if bool(xs.is_first[t, b]):
+                h, c, fed = zeros
+            h, c, fed, outs[t][b] = _closed_loop_step_by_hand(
+                name, params, h, c, fed, xs.obs[t, b:b + 1], xs.action[t, b:b + 1], sign)
+    return {key: np.stack([np.concatenate([np.asarray(outs[t][b][key]) for b in range(B)]) for t in range(T)])
+            for key in outs[0][0]}
+
+
+@pytest.mark.parametrize("name", sorted(CLOSED_LOOP_SIGNS))
+def test_closed_loop_unroll_equals_the_data_flow_by_hand(name):
+    """For the closed loops `unroll` is itself a scan of `step`, so the test above compares a
+    scan with a loop of the same step. Here both are pinned against the data flow written out
+    with the networks: 3 steps of 2 streams; stream 1 starts a new episode at t = 2."""
+    v = make_variant(name, ARCH)
+    params = v.init(jax.random.PRNGKey(8))
+    rng = np.random.default_rng(8)
+    is_first = np.array([[True, True], [False, False], [False, True]])
+    xs = StepInput(obs=jnp.asarray(rng.uniform(size=(3, 2, ARCH.image_size, ARCH.image_size)), jnp.float32),
+                   action=jnp.asarray(rng.uniform(size=(3, 2, 3)), jnp.float32), is_first=jnp.asarray(is_first))
+    want = _closed_loop_by_hand(name, params, xs, CLOSED_LOOP_SIGNS[name])
+    _, got = jax.jit(v.unroll)(params, v.init_carry(2), xs)
+    np.testing.assert_allclose(got["logits"], want["logits"], rtol=1e-5, atol=1e-5)
+    if name == "final_proposal":
+        np.testing.assert_allclose(got["action"], want["action"], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(got["reward"], want["reward"], rtol=1e-5, atol=1e-6)
+    # The example can tell the feedback apart: without it the logits agree only where õ is 0
+    # (the first step, and stream 1's new episode at t = 2).
+    open_loop = _closed_loop_by_hand(name, params, xs, 0.0)["logits"]
+    gap = np.abs(open_loop - want["logits"]).max(axis=(2, 3))
+    assert gap[0].max() == 0 and gap[2, 1] == 0
+    assert gap[1].min() > 1e-4 and gap[2, 0] > 1e-4, gap
 
 
 def _check_loss_grads(v, weights, frozen=()):
