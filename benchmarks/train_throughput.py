@@ -240,7 +240,7 @@ def _fresh_state(variant, params, batch: int, hp):
     from cdrl.training.step import TrainState
 
     params = jax.tree.map(jnp.array, params)
-    return TrainState(params=params, opt_state=make_optimizer(hp).init(params),
+    return TrainState(params=params, opt_state=make_optimizer(hp.opt).init(params),
                       carry=variant.init_carry(batch), step=jnp.zeros((), jnp.int32))
 
 

@@ -11,10 +11,12 @@ import json
 import sys
 from pathlib import Path
 
-from cdrl.runs.config import RunConfig
+from cdrl.runs.config import RECIPES, RunConfig
+from cdrl.runs.sweep import GRID_FIELDS
 
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
+_TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations
 
 
 def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...] = (), skip: tuple[str, ...] = ()) -> None:
@@ -25,12 +27,16 @@ def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...
         if f.name in skip:
             continue
         grid = f.name in several
+        if f.metadata.get("recipe"):
+            default = "from --recipe: " + ", ".join(f"{name} {table[f.name]}" for name, table in RECIPES.items())
+        else:
+            default = f.default
         parser.add_argument(
             "--" + f.name.replace("_", "-"),
-            type=type(f.default),
+            type=_TYPES[f.type],
             nargs="+" if grid else None,
             default=argparse.SUPPRESS,
-            help=f"{f.metadata['help']}{'; several values sweep them' if grid else ''} (default: {f.default})",
+            help=f"{f.metadata['help']}{'; several values sweep them' if grid else ''} (default: {default})",
         )
 
 
@@ -57,7 +63,7 @@ def _cmd_train(args) -> int:
 
 def _cmd_sweep(args) -> int:
     from cdrl.analysis.plots import plot_sweep
-    from cdrl.runs.sweep import GRID_FIELDS, Grid, format_results, sweep_run
+    from cdrl.runs.sweep import Grid, format_results, sweep_run
 
     grid = {name: tuple(getattr(args, name)) for name in GRID_FIELDS if hasattr(args, name)}
     try:
@@ -171,9 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(train)
     train.set_defaults(func=_cmd_train)
 
-    sw = sub.add_parser("sweep", help="train a grid (lr x momentum x seed x threshold) as one vmapped program")
+    sw = sub.add_parser("sweep", help="train a grid of configurations (any of --lr --momentum --b2 --weight-decay --grad-clip --lr-warmup --seed --diverge-threshold with several values) as one vmapped program")
     sw.add_argument("--run-dir", default="runs/sweep", help="directory of the sweep's runs and table (default: runs/sweep)")
-    _add_config_options(sw, several=("lr", "momentum", "seed", "diverge_threshold"))
+    _add_config_options(sw, several=GRID_FIELDS)
     sw.set_defaults(func=_cmd_sweep)
 
     ls = sub.add_parser("lr-search", help="the thesis's learning-rate search: the highest rate whose norm ratios "

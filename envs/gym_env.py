@@ -120,7 +120,7 @@ class SlitherEnv(gym.Env):
 
     def _observe(self, obs, state):
         if self.obs_type == "rgb":
-            return np.array(self.game.jit.render_raw(state))
+            return np.array(self.game.jit.render_raw(state, self.params))
         return np.array(obs)[..., None]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -146,7 +146,7 @@ class SlitherEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self._state is None:
             return None
-        return np.array(self.game.jit.render_raw(self._state))
+        return np.array(self.game.jit.render_raw(self._state, self.params))
 
 
 class SlitherVectorEnv(VectorEnv):

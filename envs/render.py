@@ -160,12 +160,12 @@ def _wave(omega: float, camera, offsets: np.ndarray):
     return jnp.cos(phase) * np.cos(omega * offsets) - jnp.sin(phase) * np.sin(omega * offsets)
 
 
-def _background(cam_x, cam_y, offsets_x, offsets_y, spec: RenderSpec, b0: float, b1: float,
+def _background(cam_x, cam_y, offsets_x, offsets_y, spec: RenderSpec, b0: float, b1,
                 half_res: bool):
     """One channel of the background [len(offsets_y), len(offsets_x)].
 
     Pixel centres lie at ``camera + offsets`` in the world; ``b0``/``b1`` are the
-    channel's coefficients.  With ``half_res`` the waves are damped by the exact
+    channel's coefficients (``b1`` may be traced: it carries the contrast).  With ``half_res`` the waves are damped by the exact
     factor that averaging a 2 x 2 block of full-resolution samples applies.  The
     waves are separable, so this is one rank-2 matrix product (XLA evaluates it far
     faster than the equivalent broadcast expression).
@@ -258,7 +258,7 @@ def _stamp(image_flat, height, width, row, col, value, radius):
     return image_flat.at[flat.reshape(-1)].max(cover.reshape(-1), mode="drop")
 
 
-def render_raw(spec: RenderSpec, state, active):
+def render_raw(spec: RenderSpec, state, active, contrast=1.0):
     """Full RGB frame [300, 500, 3] uint8 centred on the player's head.
 
     Args:
@@ -266,6 +266,8 @@ def render_raw(spec: RenderSpec, state, active):
       state: a :class:`envs.slither.SlitherState` (segment ``x``/``y`` [S, M],
         ``stripe_phase`` [S], ``pellet_value``/``pellet_dx``/``pellet_dy`` [G, G]).
       active: [S, M] bool, which segments exist.
+      contrast: scale of the background's hexagon pattern around its mean brightness
+        (1: the game's own; 0: a flat background); may be traced.
     """
     h, w = RAW_HEIGHT, RAW_WIDTH
     cam_x = state.x[0, 0]
@@ -274,7 +276,7 @@ def render_raw(spec: RenderSpec, state, active):
     off_y = np.arange(h, dtype=np.float32) + 0.5 - h / 2
     b0, b1 = _background_coefficients(spec)
     channels = [
-        _background(cam_x, cam_y, off_x, off_y, spec, b0[c], b1[c], half_res=False).reshape(-1)
+        _background(cam_x, cam_y, off_x, off_y, spec, b0[c], b1[c] * contrast, half_res=False).reshape(-1)
         for c in range(3)
     ]
 
@@ -311,7 +313,7 @@ def _compact(mask, budget):
     )[:budget]
 
 
-def render_obs(spec: RenderSpec, state, active):
+def render_obs(spec: RenderSpec, state, active, contrast=1.0):
     """Pre-processed observation [150, 150] float32 in [0, 1], drawn directly.
 
     Same arguments as :func:`render_raw`.  Output pixel (i, j) stands for the raw
@@ -326,7 +328,7 @@ def render_obs(spec: RenderSpec, state, active):
     b0, b1 = _background_coefficients(spec)
     bright = int(np.argmax(b0 + 3.0 * b1))
     image = _background(
-        cam_x, cam_y, grid, grid, spec, b0[bright], b1[bright], half_res=True
+        cam_x, cam_y, grid, grid, spec, b0[bright], b1[bright] * contrast, half_res=True
     ).reshape(-1)
 
     def to_px(wx, wy):

@@ -90,6 +90,8 @@ class SlitherParams:
       opp_min_length, opp_max_length: range of opponents' lengths at (re)spawn.
       respawn_distance: least distance of a (re)spawned opponent from the player.
       max_steps: steps after which the episode is truncated.
+      background_contrast: scale of the hexagon pattern of the background around its
+        mean brightness (1: the thesis-like game; 0: a flat background). Rendering only.
     """
 
     speed: float = 6.0
@@ -114,6 +116,30 @@ class SlitherParams:
     opp_max_length: float = 30.0
     respawn_distance: float = 400.0
     max_steps: int = 1000
+    background_contrast: float = 1.0
+
+
+# Named levels of the game, as overrides of the default `SlitherParams`: how much of the
+# frame a world model must predict beyond the player's own motion. Copying the last frame
+# is a strong predictor where the textured background and the pellets dominate the error.
+LEVELS: dict[str, dict[str, float]] = {
+    # the thesis-like game: hexagon-textured background, 60 % of the pellet cells filled
+    "thesis": {},
+    # a flat background: the scrolling texture is gone, snakes and pellets remain
+    "flat": {"background_contrast": 0.0},
+    # the texture, with a tenth of the cells holding a pellet (slow regrowth keeps it so)
+    "sparse": {"pellet_init_fill": 0.1, "pellet_regrow_prob": 0.05},
+    # flat and sparse: mostly the snakes
+    "clean": {"background_contrast": 0.0, "pellet_init_fill": 0.1, "pellet_regrow_prob": 0.05},
+}
+
+
+def level_params(level: str, params: "SlitherParams | None" = None) -> "SlitherParams":
+    """``params`` (default: the defaults) with the overrides of level ``level``."""
+    if level not in LEVELS:
+        raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)}")
+    params = SlitherParams() if params is None else params
+    return canonical_params(params.replace(**LEVELS[level]))
 
 
 @struct.dataclass
@@ -524,11 +550,13 @@ class Slither:
 
     def get_obs(self, state: SlitherState, params: SlitherParams | None = None) -> jnp.ndarray:
         """The pre-processed observation [150, 150] float32 in [0, 1] (fast path)."""
-        return _render.render_obs(self.spec, state, self.active(state))
+        params = self.default_params if params is None else params
+        return _render.render_obs(self.spec, state, self.active(state), params.background_contrast)
 
     def render_raw(self, state: SlitherState, params: SlitherParams | None = None) -> jnp.ndarray:
         """The raw RGB frame [300, 500, 3] uint8 (width 500 x height 300)."""
-        return _render.render_raw(self.spec, state, self.active(state))
+        params = self.default_params if params is None else params
+        return _render.render_raw(self.spec, state, self.active(state), params.background_contrast)
 
     def in_view(self, state: SlitherState) -> jnp.ndarray:
         """[S] bool: some segment centre of snake s lies inside the observed crop."""

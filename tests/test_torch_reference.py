@@ -149,7 +149,7 @@ def test_sgd_momentum_steps_match_torch():
     v = make_variant(name, arch)
     hp = HParams.create(v, lr=0.1, momentum=0.9)
     params = _init(v, 3)
-    state = TrainState(params=params, opt_state=make_optimizer(hp).init(params),
+    state = TrainState(params=params, opt_state=make_optimizer(hp.opt).init(params),
                              carry=_carry(v, B, seed=4), step=jnp.zeros((), jnp.int32))
     model = tr.load_cdrl_params(tr.TorchModel(arch, name), state.params)
     opt = tr.make_optimizer(model, lr=0.1, momentum=0.9)

@@ -3,6 +3,8 @@
 `plot_runs(run_dirs, out_dir)` writes, into `out_dir` (default `run_dirs[0]/plots`):
 
 - `loss.png`: training loss of every run, running average over 4096 samples (figs 5.1/5.3/5.7/5.8);
+- `excess.png`: held-out excess ratio (BCE - floor) / (copy-last BCE - floor) at every
+  evaluation of every run (below 1: better than copying the last frame);
 - `ratios.png`: ||grad||/||param|| of chosen parameter groups, running average over 256 steps
   (figs 5.4/5.5);
 - `code_error.png`: code-prediction error MSE(d_t, k_t) over training, for runs that log it (fig 5.6);
@@ -33,6 +35,7 @@ from matplotlib.figure import Figure
 
 from cdrl.analysis.report import (Model, Run, evaluate_model, load_run, restore_model, run_episodes, running_mean,
                                   training_loss)
+from cdrl.evaluation.metrics import excess_ratio
 from cdrl.models.base import StepInput, Variant
 from cdrl.runs.checkpoint import CheckpointError
 
@@ -155,6 +158,36 @@ def ratios_figure(runs: Sequence[Run], groups: Sequence[str] | None = None) -> F
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize="small")
     fig.suptitle(f"Norm ratios (running average over {RATIO_WINDOW} steps)")
+    fig.tight_layout()
+    return fig
+
+
+def held_out_ratios(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """(training frames seen, held-out excess ratio) of every evaluation in `eval.jsonl`."""
+    points = [(e["step"] * run.samples_per_step,
+               excess_ratio(e["bce"], e["copy_bce"], e["target_entropy"]))
+              for e in run.evals if e.get("split") == "test" and "bce" in e]
+    frames, ratios = (np.array(v, np.float64) for v in zip(*points)) if points else (np.zeros(0), np.zeros(0))
+    return frames, ratios
+
+
+def excess_figure(runs: Sequence[Run]) -> Figure:
+    """Held-out excess ratio (BCE - floor) / (copy-last BCE - floor) of every run at each of
+    its evaluations, against training frames seen; below the line at 1 a model beats copying
+    the last frame."""
+    fig = Figure(figsize=LOSS_SIZE)
+    ax = fig.add_subplot()
+    for run, style in zip(runs, _styles()):
+        frames, ratios = held_out_ratios(run)
+        if frames.size:
+            ax.plot(frames, ratios, style, marker="o", ms=3, label=run.label)
+    ax.axhline(1.0, color="black", lw=1, ls=":", label="copy last frame")
+    ax.set_yscale("log")
+    ax.set_xlabel("training samples (frames)")
+    ax.set_ylabel("held-out excess ratio")
+    ax.set_title("(BCE - entropy floor) / (copy-last BCE - entropy floor), held-out frames")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
     fig.tight_layout()
     return fig
 
@@ -313,7 +346,9 @@ def bce_bars_figure(rows: Sequence[dict]) -> Figure:
         values = [row.get(key) if row.get(key) is not None else np.nan for row in rows]
         ax.bar(x + (i - (len(bars) - 1) / 2) * width, values, width, label=label, color=color,
                hatch=hatch, alpha=0.45 if hatch else 0.9, edgecolor="black", linewidth=0.5)
-    ax.set_xticks(x, [f"{row['run']}\n({row['variant']}, step {row['steps']})" for row in rows])
+    ax.set_xticks(x, [f"{row['run']}\n({row['variant']}, step {row['steps']})\nheld-out excess ratio "
+                      + ("-" if row.get("test_excess_ratio") is None else f"{row['test_excess_ratio']:.3f}")
+                      for row in rows])
     ax.set_ylabel("BCE per pixel")
     counts = sorted({(row["train_episodes"], row["test_episodes"]) for row in rows})
     episodes = ", ".join(f"{a} train / {b} held-out" for a, b in counts)
@@ -354,6 +389,8 @@ def plot_runs(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None,
 
     written = [save_figure(loss_figure(runs), out / "loss.png"),
                save_figure(ratios_figure(runs, groups), out / "ratios.png")]
+    if any(held_out_ratios(run)[0].size for run in runs):
+        written.append(save_figure(excess_figure(runs), out / "excess.png"))
     if any(map(has_code_error, runs)):
         written.append(save_figure(code_error_figure(runs), out / "code_error.png"))
     rows = []

@@ -8,7 +8,6 @@ episodes; `eval_runs(dirs)` does all three for several runs and prints a table.
 from __future__ import annotations
 
 import dataclasses
-import math
 import sys
 from pathlib import Path
 from typing import Any, Sequence
@@ -16,13 +15,12 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 
-from cdrl.evaluation.metrics import evaluate
+from cdrl.evaluation.metrics import evaluate, prefixed
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes
-from cdrl.training.optim import HParams
 from cdrl.training.step import init_state
 
 # The thesis reports the training loss as a running average over the previous 4096 samples.
@@ -91,7 +89,7 @@ def restore_model(run: Run) -> Model:
     if not directory.is_dir() or not any(p.name.isdigit() for p in directory.iterdir()):
         raise FileNotFoundError(f"{directory} holds no checkpoint")
     variant = make_variant(cfg.variant, cfg.arch)
-    hp = HParams.create(variant, cfg.lr, cfg.momentum, diverge_threshold=cfg.diverge_threshold)
+    hp = cfg.hparams(variant)
     # The abstract shape of a state is all a restore needs; tracing it is much cheaper than
     # initialising one eagerly.
     like = jax.eval_shape(lambda: init_state(variant, jax.random.PRNGKey(0), cfg.batch, hp))
@@ -126,8 +124,8 @@ def training_loss(run: Run) -> tuple[np.ndarray, np.ndarray]:
 
 
 def evaluate_model(run: Run, model: Model, episodes: int, data: tuple[list, list] | None = None) -> dict:
-    """One table row: BCE and copy-last-frame BCE (and code-prediction MSE where the variant
-    has one) on `episodes` training and `episodes` held-out episodes (`data`, default
+    """One table row: BCE, copy-last-frame BCE, entropy floor, excess ratio (and code-prediction
+    MSE where the variant has one) on `episodes` training and `episodes` held-out episodes (`data`, default
     `run_episodes(run, episodes)`), plus the final training loss (running average over the
     last 4096 samples). Missing numbers are None."""
     if episodes < 1:
@@ -137,11 +135,8 @@ def evaluate_model(run: Run, model: Model, episodes: int, data: tuple[list, list
     for split, eps in (("train", train), ("test", test)):
         if not eps:
             raise ValueError(f"{run.path}: the run's data has no {split} episodes")
-        scores = evaluate(model.variant, model.params, eps, run.config.unroll)
         row[f"{split}_episodes"] = len(eps)
-        for key in ("bce", "copy_bce", "target_entropy", "code_pred_mse"):
-            value = scores.get(key)
-            row[f"{split}_{key}"] = float(value) if value is not None and math.isfinite(value) else None
+        row.update(prefixed(evaluate(model.variant, model.params, eps, run.config.unroll), split))
     _, loss = training_loss(run)
     row["final_train_loss"] = float(running_mean(loss, run.loss_window)[-1])
     return row
@@ -151,6 +146,7 @@ COLUMNS = (
     ("run", "run"), ("variant", "variant"), ("steps", "steps"),
     ("train_bce", "train BCE"), ("test_bce", "test BCE"),
     ("test_copy_bce", "copy-last BCE"), ("test_target_entropy", "entropy floor"),
+    ("test_excess_ratio", "excess ratio"),
     ("test_code_pred_mse", "code-pred MSE"),
     ("final_train_loss", "final train loss"),
 )
@@ -158,7 +154,8 @@ COLUMNS = (
 
 def format_table(rows: list[dict]) -> str:
     """The rows as an aligned text table (BCEs on the held-out episodes unless marked train;
-    the copy-last-frame baseline and code-prediction MSE are on the held-out episodes)."""
+    the copy-last-frame baseline, the floor, the excess ratio (BCE - floor) / (copy-last BCE -
+    floor) and code-prediction MSE are on the held-out episodes)."""
     def cell(value):
         if value is None:
             return "-"

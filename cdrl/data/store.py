@@ -178,6 +178,13 @@ class _Writer:
         self._save_manifest()
 
     def _check_same(self, old: dict) -> None:
+        if "env_params" in old and "env_params" in self.config:
+            # A game parameter added after the data set was collected had its default value.
+            from envs.slither import SlitherParams
+
+            defaults = _params_dict(SlitherParams())
+            old = {**old, "env_params": {**{k: v for k, v in defaults.items() if k not in old["env_params"]},
+                                         **old["env_params"]}}
         diffs = [
             f"{key}: existing {old.get(key)!r} != requested {self.config.get(key)!r}"
             for key in sorted(set(old) | set(self.config))

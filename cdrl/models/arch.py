@@ -33,6 +33,12 @@ class ArchConfig:
     `encoder` is the observation encoder's layer table; the observation decoder is its exact
     mirror (transposed convolutions with the same kernel, stride and padding, in reverse).
     The last encoder layer's `features` is the observation code size.
+
+    Two numbers are not sizes but fixed parts of the model that the thesis leaves at their
+    neutral values: `obs_mean` / `obs_std`, the affine map applied to frames before the
+    encoder (x - mean) / std (0 / 1: raw [0, 1] brightness, as in the thesis), and
+    `fc_init_gain`, the scale of the LeCun-normal initial kernel of the FC layer that reads
+    the LSTM's output (1: the thesis's initialisation).
     """
 
     image_size: int = 150
@@ -50,6 +56,9 @@ class ArchConfig:
     reward_code: int = 16
     reward_hidden: int = 64
     lstm_size: int = 512
+    obs_mean: float = 0.0
+    obs_std: float = 1.0
+    fc_init_gain: float = 1.0
 
     def __post_init__(self):
         if self.image_size < 1:

@@ -89,15 +89,25 @@ class Variant:
             "obs_enc": nets.init_obs_encoder(k[0], a),
             "obs_dec": nets.init_obs_decoder(k[1], a),
         }
-        hidden = a.lstm_size if recurrent else self.core_in_size()
         if recurrent:
             params["lstm"] = nets.init_lstm(k[2], self.core_in_size(), a.lstm_size)
-        params["fc"] = nets.init_mlp(k[3], (hidden, a.obs_code), final_selu=True)
+            params["fc"] = self._init_core_fc(k[3], a.obs_code)
+        else:
+            params["fc"] = nets.init_mlp(k[3], (self.core_in_size(), a.obs_code), final_selu=True)
         if self.uses_action:
             params["act_enc"] = nets.init_mlp(
                 k[4], (a.action_dim, *a.action_hidden, a.action_code), final_selu=True
             )
         return params
+
+    def _init_core_fc(self, key: jax.Array, n_out: int) -> dict:
+        """The FC layer reading the LSTM's output h: LeCun-normal times `arch.fc_init_gain`.
+        With Glorot weights and zero biases the LSTM's gates start near 0.5, so h has a
+        fraction of its input's spread; the gain gives the SELU layers after it back the
+        unit-variance input they assume."""
+        fc = nets.init_mlp(key, (self.arch.lstm_size, n_out), final_selu=True)
+        fc["dense0"]["kernel"] = fc["dense0"]["kernel"] * self.arch.fc_init_gain
+        return fc
 
     # ---- time
     def step(self, params: dict, carry: Carry, x: StepInput) -> tuple[Carry, Outputs]:

@@ -39,7 +39,7 @@ class _Heads:
         a = self.arch
         k_base, k_fc, k_act, k_rew = jax.random.split(key, 4)
         params = self._init_common(k_base)
-        params["fc"] = nets.init_mlp(k_fc, (a.lstm_size, sum(self.head_sizes())), final_selu=True)
+        params["fc"] = self._init_core_fc(k_fc, sum(self.head_sizes()))
         params["act_dec"] = nets.init_mlp(
             k_act, (a.action_code, *reversed(a.action_hidden), a.action_dim), final_selu=False
         )

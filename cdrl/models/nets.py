@@ -109,8 +109,9 @@ def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Ar
 
 
 def obs_encoder(params: Params, arch: ArchConfig, frames: jax.Array) -> jax.Array:
-    """E_o: frames `[B, H, W]` in [0, 1] -> codes `[B, obs_code]` (SELU after every layer)."""
-    x = frames[..., None]
+    """E_o: frames `[B, H, W]` in [0, 1] -> codes `[B, obs_code]` (SELU after every layer).
+    The frames enter as (frames - arch.obs_mean) / arch.obs_std."""
+    x = (frames[..., None] - arch.obs_mean) / arch.obs_std
     for i, spec in enumerate(arch.encoder):
         layer = params[f"conv{i}"]
         x = jax.nn.selu(conv2d(x, layer["kernel"], spec.stride, spec.padding) + layer["bias"])

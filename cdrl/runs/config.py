@@ -1,15 +1,48 @@
 """`RunConfig`: everything that defines a training run. The CLI's `train` and `sweep` options
 map onto its fields (help texts and defaults come from here); `config.json` in a run
-directory is its `dataclasses.asdict`."""
+directory is its `dataclasses.asdict`.
+
+How a model is trained comes in named recipes (`RECIPES`): `thesis` is the thesis's
+training exactly (SGD lr 0.1, momentum 0.9, batch 1, raw [0, 1] brightness into the
+encoder, the initialisation of its section 4.3.1); `fast` is the quickest route to a model
+that beats copying the last frame that cdrl has measured (see the README's "Learning"
+section). A recipe fills every option of its table that the run does not set itself; the
+config written to `config.json` holds the resolved values, so a run reads the same later
+whatever the recipes become.
+"""
 from __future__ import annotations
 
 import dataclasses
 
 from cdrl.models.arch import ArchConfig, preset
+from cdrl.models.base import Variant
+from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
+
+# option -> value, per recipe. Options not listed keep their field default.
+RECIPES: dict[str, dict[str, object]] = {
+    "thesis": {
+        "optimizer": "sgd", "lr": 0.1, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.0,
+        "lr_schedule": "constant", "lr_warmup": 0, "batch": 1, "unroll": 32, "obs_norm": "none",
+        "fc_init_gain": 1.0,
+    },
+    "fast": {
+        "optimizer": "sgd", "lr": 1.0, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.0,
+        "lr_schedule": "constant", "lr_warmup": 0, "batch": 4, "unroll": 32, "obs_norm": "data",
+        "fc_init_gain": 5.0,
+    },
+}
+DEFAULT_RECIPE = "fast"
+OBS_NORMS = ("none", "data")
+LEVELS = ("thesis", "flat", "sparse", "clean")  # envs.slither.LEVELS; checked there too
 
 
 def _opt(default, help: str):
     return dataclasses.field(default=default, metadata={"help": help})
+
+
+def _recipe_opt(help: str):
+    """An option whose default comes from the run's recipe."""
+    return dataclasses.field(default=None, metadata={"help": help, "recipe": True})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -18,13 +51,27 @@ class RunConfig:
 
     variant: str = _opt("main", "model variant (see `cdrl variants`)")
     preset: str = _opt("small", "architecture preset: thesis (150x150, LSTM 512), small (64x64) or tiny")
+    recipe: str = _opt(DEFAULT_RECIPE, f"training recipe filling the options it names: {' or '.join(RECIPES)}")
     data: str = _opt("game", "'game' (collect from the built-in game and cache it), 'synthetic', or a data set directory")
+    level: str = _opt("thesis", f"level of the built-in game (data collection and online play): {', '.join(LEVELS)}")
     episodes: int = _opt(60, "episodes to collect when data is 'game' or 'synthetic'")
     episode_steps: int = _opt(200, "step limit of a collected episode")
-    unroll: int = _opt(32, "truncated-BPTT length T")
-    batch: int = _opt(1, "independent episode streams per step B")
-    lr: float = _opt(0.1, "SGD learning rate")
-    momentum: float = _opt(0.9, "SGD momentum")
+    unroll: int = _recipe_opt("truncated-BPTT length T")
+    batch: int = _recipe_opt("independent episode streams per step B")
+    optimizer: str = _recipe_opt(f"optimiser: {', '.join(OPTIMIZERS)}")
+    lr: float = _recipe_opt("learning rate (the peak of the schedule)")
+    momentum: float = _recipe_opt("SGD momentum; beta1 of adam, adamw, lion; momentum of rmsprop")
+    b2: float = _recipe_opt("beta2 of adam, adamw, lion; squared-gradient decay of rmsprop")
+    weight_decay: float = _recipe_opt("decoupled weight decay (adamw, lion)")
+    grad_clip: float = _recipe_opt("largest global gradient norm (0: no clipping)")
+    lr_schedule: str = _recipe_opt(f"learning-rate schedule: {' or '.join(SCHEDULES)} (cosine: from lr to 0 over lr_decay_steps)")
+    lr_warmup: int = _recipe_opt("steps of linear learning-rate warm-up from 0 (0: none)")
+    lr_decay_steps: int = _opt(0, "length of the cosine decay (0: the run's steps, fixed when the run starts)")
+    obs_norm: str = _recipe_opt("encoder input: none (raw [0, 1] brightness, the thesis) or data (standardised "
+                                "by the training frames' mean and std, measured when the run starts)")
+    obs_mean: float = _opt(0.0, "brightness subtracted from the encoder's input (set by obs_norm data)")
+    obs_std: float = _opt(1.0, "divisor of the encoder's input (set by obs_norm data)")
+    fc_init_gain: float = _recipe_opt("scale of the core's FC layer's LeCun-normal initial kernel (1: the thesis)")
     steps: int = _opt(1000, "training steps (chunks)")
     seed: int = _opt(0, "seed of the parameters and the data order")
     diverge_threshold: float = _opt(1e3, "a norm ratio ||grad||/||param|| above this stops the run")
@@ -32,7 +79,7 @@ class RunConfig:
     keep_checkpoints: int = _opt(3, "how many checkpoints to keep")
     eval_every: int = _opt(250, "steps between held-out evaluations (0: only at the end)")
     eval_episodes: int = _opt(4, "held-out episodes per evaluation (online variants: games per policy)")
-    env: str = _opt("", "game parameters for the built-in game, e.g. 'max_steps=300,pellet_init_fill=0.3'")
+    env: str = _opt("", "game parameters over the level's, e.g. 'max_steps=300,pellet_init_fill=0.3'")
     scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
     reward_weight: float = _opt(0.1, "online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum 0.9 oscillates on it at 1)")
@@ -41,18 +88,53 @@ class RunConfig:
     warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")
 
     def __post_init__(self):
+        if self.recipe not in RECIPES:
+            raise ValueError(f"unknown recipe {self.recipe!r}; choose one of {sorted(RECIPES)}")
+        for name, value in RECIPES[self.recipe].items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+        if self.lr_schedule == "cosine" and self.lr_decay_steps == 0:
+            object.__setattr__(self, "lr_decay_steps", self.steps)
         preset(self.preset)
         for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.scope not in ("controller", "all"):
-            raise ValueError(f"scope must be 'controller' or 'all', got {self.scope!r}")
-        if self.lr <= 0 or not 0 <= self.momentum < 1:
-            raise ValueError(f"need lr > 0 and 0 <= momentum < 1, got lr={self.lr}, momentum={self.momentum}")
+        choices = {"scope": ("controller", "all"), "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
+                   "obs_norm": OBS_NORMS, "level": LEVELS}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        if self.lr <= 0 or not 0 <= self.momentum < 1 or not 0 <= self.b2 < 1:
+            raise ValueError(f"need lr > 0, 0 <= momentum < 1 and 0 <= b2 < 1; got lr={self.lr}, "
+                             f"momentum={self.momentum}, b2={self.b2}")
+        for name in ("weight_decay", "grad_clip", "lr_warmup", "lr_decay_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not self.diverge_threshold > 0:
+            raise ValueError(f"diverge_threshold must be > 0, got {self.diverge_threshold}")
+        if not self.obs_std > 0 or not self.fc_init_gain > 0:
+            raise ValueError(f"obs_std and fc_init_gain must be > 0; got {self.obs_std} and {self.fc_init_gain}")
 
     @property
     def arch(self) -> ArchConfig:
-        return preset(self.preset)
+        return dataclasses.replace(preset(self.preset), obs_mean=self.obs_mean, obs_std=self.obs_std,
+                                   fc_init_gain=self.fc_init_gain)
+
+    def opt_hparams(self) -> OptHParams:
+        """The optimiser's traced numbers."""
+        return OptHParams.create(name=self.optimizer, lr=self.lr, momentum=self.momentum, b2=self.b2,
+                                 weight_decay=self.weight_decay, grad_clip=self.grad_clip, warmup=self.lr_warmup,
+                                 decay_steps=self.lr_decay_steps if self.lr_schedule == "cosine" else 0)
+
+    def hparams(self, variant: Variant) -> HParams:
+        """The traced hyper-parameters of offline training."""
+        return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold)
+
+
+def saved_config(saved: dict) -> RunConfig:
+    """A `RunConfig` from a `config.json`. A config written before recipes existed holds
+    no recipe: the options it lacks are the thesis recipe's, which is how it was trained."""
+    return RunConfig(**{"recipe": "thesis", **saved})
 
 
 # Options that may change when a run is resumed (they do not change what the steps compute).

@@ -17,12 +17,11 @@ from tqdm import tqdm
 
 from cdrl.data.stream import ChunkStream
 from cdrl.evaluation.metrics import evaluate
-from cdrl.models.base import Variant
+from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
-from cdrl.runs.sources import load_episodes
+from cdrl.runs.sources import load_episodes, with_obs_norm
 from cdrl.training.loop import divergence_message, enter_stage, stage_schedule
-from cdrl.training.optim import HParams
 from cdrl.training.step import init_state, ratio_names, train_step
 
 
@@ -39,11 +38,14 @@ def step_record(step: int, metrics: dict, names: list[str], fps: float) -> dict:
     }
 
 
-def offline_train_run(cfg: RunConfig, variant: Variant, run: RunDir, resume: bool,
-                      progress: bool | None = None) -> dict:
-    train_eps, test_eps = load_episodes(cfg, run.path.parent / "data-cache")
+def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
+    cache = run.path.parent / "data-cache"
+    train_eps, test_eps = load_episodes(cfg, cache)
+    if not resume:
+        cfg = with_obs_norm(cfg, cache)
+    variant = make_variant(cfg.variant, cfg.arch)
     stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size, seed=cfg.seed)
-    hp = HParams.create(variant, cfg.lr, cfg.momentum, diverge_threshold=cfg.diverge_threshold)
+    hp = cfg.hparams(variant)
     key = jax.random.PRNGKey(cfg.seed)
     opened = run.open(cfg, init_state(variant, key, cfg.batch, hp), resume)
     state, start, ckpts = opened.state, opened.start, opened.checkpoints

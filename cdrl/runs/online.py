@@ -21,14 +21,14 @@ from cdrl.models import make_variant
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
-from cdrl.runs.sources import run_game
+from cdrl.runs.sources import run_game, with_obs_norm
 from cdrl.training.loop import divergence_message
 from cdrl.training.monitor import group_names
 from cdrl.training.online import OnlineConfig, OnlineHParams, init_online, online_step
 
 
 def hparams(cfg: RunConfig) -> OnlineHParams:
-    return OnlineHParams.create(lr=cfg.lr, momentum=cfg.momentum, ascent=cfg.ascent, reward_weight=cfg.reward_weight,
+    return OnlineHParams.create(opt=cfg.opt_hparams(), ascent=cfg.ascent, reward_weight=cfg.reward_weight,
                                 noise_std=cfg.noise_std, noise_decay=cfg.noise_decay, warmup_steps=cfg.warmup_steps,
                                 diverge_threshold=cfg.diverge_threshold, scope=cfg.scope)
 
@@ -46,8 +46,10 @@ def compare_policies(variant: Variant, params, game, env_params, episodes: int, 
     return rows
 
 
-def online_train_run(cfg: RunConfig, variant: Variant, run: RunDir, resume: bool,
-                     progress: bool | None = None) -> dict:
+def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
+    if not resume:
+        cfg = with_obs_norm(cfg, run.path.parent / "data-cache")
+    variant = make_variant(cfg.variant, cfg.arch)
     game, env_params = run_game(cfg)
     ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll)
     hp = hparams(cfg)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
-from cdrl.runs.config import RESUMABLE, RunConfig
+from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -69,8 +69,8 @@ class RunLog:
 
 
 def _check_compatible(cfg: RunConfig):
-    # A field the checkpoint's config lacks (added to RunConfig later) had its default.
-    defaults = dataclasses.asdict(RunConfig())
+    # A field the checkpoint's config lacks (added to RunConfig later) had its thesis value.
+    defaults = dataclasses.asdict(saved_config({}))
 
     def check(meta):
         saved = {**defaults, **meta.get("config", {})}
@@ -122,7 +122,7 @@ class RunDir:
             raise ValueError(f"{self.path} is not a run directory: it has no config.json "
                                     "(make one with `cdrl train --run-dir`)")
         try:
-            return RunConfig(**json.loads(self.config_path.read_text()))
+            return saved_config(json.loads(self.config_path.read_text()))
         except (json.JSONDecodeError, TypeError) as exc:
             raise ValueError(f"{self.config_path} is not a valid run config: {exc}") from None
 

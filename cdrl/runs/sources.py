@@ -1,15 +1,48 @@
 """What a run's config points to: its episodes (a data set directory, the built-in game's
-data collected and cached, or synthetic episodes) and, for controller runs, the game."""
+data collected and cached, or synthetic episodes), the game of controller runs, and the
+frame statistics that `obs_norm data` standardises the encoder's input with."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from cdrl.data import store, synthetic
+from cdrl.data.episode import Episode
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
+
+
+def game_params(cfg: RunConfig):
+    """The built-in game's parameters of a run: its level, then `cfg.env` ('name=value,...')."""
+    from envs.slither import SlitherParams, canonical_params, level_params
+
+    params = level_params(cfg.level)
+    if cfg.env:
+        names = {f.name for f in dataclasses.fields(SlitherParams)}
+        changes = {}
+        for item in cfg.env.split(","):
+            name, sep, value = item.partition("=")
+            name = name.strip()
+            if not sep or name not in names:
+                raise ValueError(f"bad game parameter {item!r}; use name=value with a name out of {sorted(names)}")
+            try:
+                changes[name] = np.asarray(float(value), np.asarray(getattr(params, name)).dtype)
+            except ValueError:
+                raise ValueError(f"bad game parameter {item!r}: {value!r} is not a number") from None
+        params = canonical_params(params.replace(**changes))
+    return params
+
+
+def _cache_name(cfg: RunConfig, policy: str, episodes: int) -> str:
+    game = f"-{cfg.level}" if cfg.level != "thesis" else ""
+    if cfg.env:
+        game += "-" + re.sub(r"[^A-Za-z0-9.=_-]+", "_", cfg.env.replace(",", "_"))
+    return (f"slither-{policy}-{cfg.arch.image_size}px-{episodes}ep-{cfg.episode_steps}steps-seed{cfg.seed}"
+            f"{game}")
 
 
 def load_episodes(cfg: RunConfig, cache_root: Path):
@@ -23,36 +56,62 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
         return train, test
     if cfg.data == "game":
         policy = "uniform" if uses_action else "behaviour"
-        path = cache_root / f"slither-{policy}-{size}px-{cfg.episodes}ep-{cfg.episode_steps}steps-seed{cfg.seed}"
-        store.collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size)
+        path = cache_root / _cache_name(cfg, policy, cfg.episodes)
+        store.collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
+                      env_params=game_params(cfg))
     else:
         path = Path(cfg.data)
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
 
 
-def make_game(spec: str):
-    """The built-in game and its parameters, with `spec` ('name=value,...') overriding defaults."""
-    from envs.slither import Slither
+def frame_stats(episodes: Sequence[Episode], max_episodes: int = 16) -> tuple[float, float]:
+    """Mean and standard deviation of the pixels of the first `max_episodes` episodes, as
+    brightness in [0, 1]."""
+    if len(episodes) == 0:
+        raise ValueError("no episodes to measure frame statistics on")
+    total = total_sq = count = 0.0
+    for i in range(min(max_episodes, len(episodes))):
+        frames = np.asarray(episodes[i].frames, np.float64)
+        if episodes[i].frames.dtype == np.uint8:
+            frames = frames / 255.0
+        total += float(frames.sum())
+        total_sq += float(np.square(frames).sum())
+        count += frames.size
+    mean = total / count
+    std = float(np.sqrt(max(total_sq / count - mean * mean, 0.0)))
+    if std == 0.0:
+        raise ValueError("the frames are constant: obs_norm data cannot standardise them (use obs_norm none)")
+    return mean, std
 
-    game = Slither()
-    params = game.default_params
-    if spec:
-        names = {f.name for f in dataclasses.fields(params)}
-        changes = {}
-        for item in spec.split(","):
-            name, sep, value = item.partition("=")
-            name = name.strip()
-            if not sep or name not in names:
-                raise ValueError(f"bad game parameter {item!r}; use name=value with a name out of {sorted(names)}")
-            changes[name] = np.asarray(float(value), np.asarray(getattr(params, name)).dtype)
-        params = params.replace(**changes)
-    return game, params
+
+def stats_episodes(cfg: RunConfig, cache_root: Path) -> Sequence[Episode]:
+    """The frames `obs_norm data` measures, the same for every seed (so a sweep over seeds
+    is one architecture, and equals its single runs): a data set directory's training
+    split; for the built-in game, 8 behaviour-switching episodes of its level and game
+    parameters collected with seed 0 (online runs too); synthetic episodes of seed 0."""
+    if cfg.data == "game":
+        sample = dataclasses.replace(cfg, variant="main", episodes=8, seed=0)
+    elif cfg.data == "synthetic":
+        sample = dataclasses.replace(cfg, seed=0)
+    else:
+        sample = cfg
+    return load_episodes(sample, cache_root)[0]
+
+
+def with_obs_norm(cfg: RunConfig, cache_root: Path) -> RunConfig:
+    """`cfg` with `obs_mean`/`obs_std` measured (`stats_episodes`) when `cfg.obs_norm` is 'data'."""
+    if cfg.obs_norm != "data":
+        return cfg
+    mean, std = frame_stats(stats_episodes(cfg, cache_root))
+    return dataclasses.replace(cfg, obs_mean=mean, obs_std=std)
 
 
 def run_game(cfg: RunConfig):
-    """The game a controller run plays: `cfg.env` over the defaults, episodes capped at
+    """The game a controller run plays: the run's level and `cfg.env`, episodes capped at
     `cfg.episode_steps` unless `cfg.env` sets `max_steps`."""
-    game, params = make_game(cfg.env)
+    from envs.slither import Slither
+
+    params = game_params(cfg)
     if "max_steps" not in cfg.env:
         params = params.replace(max_steps=np.asarray(cfg.episode_steps, np.int32))
-    return game, params
+    return Slither(), params

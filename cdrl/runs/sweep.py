@@ -32,47 +32,58 @@ import numpy as np
 from tqdm import tqdm
 
 from cdrl.data.stream import Chunk, ChunkStream
-from cdrl.evaluation.metrics import evaluate
+from cdrl.evaluation.metrics import evaluate, prefixed
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.offline import step_record
 from cdrl.runs.rundir import RunDir, atomic_write_text
-from cdrl.runs.sources import load_episodes
+from cdrl.runs.sources import load_episodes, with_obs_norm
 from cdrl.training.loop import enter_stage, stage_schedule
 from cdrl.training.monitor import group_names
-from cdrl.training.optim import HParams, make_optimizer
+from cdrl.training.optim import HParams, init_opt_state
 from cdrl.training.step import TrainState, init_params, train_step_fn
 
-GRID_FIELDS = ("lr", "momentum", "seed", "diverge_threshold")
+# The options a sweep may vary: every one is a traced number of the train step (or the seed,
+# which sets the initialisation and the data order), so the whole grid is one program.
+GRID_FIELDS = ("lr", "momentum", "b2", "weight_decay", "grad_clip", "lr_warmup", "seed", "diverge_threshold")
+# Short names in a configuration's directory name; the first four always appear.
+_NAME_PARTS = {"lr": "lr", "momentum": "mom", "seed": "seed", "diverge_threshold": "thr", "b2": "b2",
+               "weight_decay": "wd", "grad_clip": "clip", "lr_warmup": "warm"}
 
 
 @dataclasses.dataclass(frozen=True)
 class Grid:
-    """The values of each swept option; the sweep trains their cartesian product."""
+    """The values of each swept option (empty: the base config's value); the sweep trains
+    their cartesian product."""
 
-    lr: tuple[float, ...] = (0.1,)
-    momentum: tuple[float, ...] = (0.9,)
-    seed: tuple[int, ...] = (0,)
-    diverge_threshold: tuple[float, ...] = (1e3,)
+    lr: tuple[float, ...] = ()
+    momentum: tuple[float, ...] = ()
+    b2: tuple[float, ...] = ()
+    weight_decay: tuple[float, ...] = ()
+    grad_clip: tuple[float, ...] = ()
+    lr_warmup: tuple[int, ...] = ()
+    seed: tuple[int, ...] = ()
+    diverge_threshold: tuple[float, ...] = ()
 
     def __post_init__(self):
         for name in GRID_FIELDS:
             values = tuple(getattr(self, name))
-            if not values:
-                raise ValueError(f"the grid needs at least one value of {name}")
             if len(set(values)) != len(values):
                 raise ValueError(f"the grid repeats a value of {name}: {values}")
             object.__setattr__(self, name, values)
 
     def configs(self, base: RunConfig) -> list[RunConfig]:
         """One `RunConfig` per grid point, in `itertools.product` order of the fields."""
-        points = itertools.product(*(getattr(self, name) for name in GRID_FIELDS))
-        return [dataclasses.replace(base, **dict(zip(GRID_FIELDS, p))) for p in points]
+        axes = [getattr(self, name) or (getattr(base, name),) for name in GRID_FIELDS]
+        return [dataclasses.replace(base, **dict(zip(GRID_FIELDS, p))) for p in itertools.product(*axes)]
 
-
-def config_name(cfg: RunConfig) -> str:
-    return f"lr{cfg.lr:g}-mom{cfg.momentum:g}-seed{cfg.seed}-thr{cfg.diverge_threshold:g}"
+    def name(self, cfg: RunConfig) -> str:
+        """The directory name of `cfg`'s configuration: lr, momentum, seed and threshold, and
+        every other option this grid sets."""
+        shown = ["lr", "momentum", "seed", "diverge_threshold"] + [
+            n for n in GRID_FIELDS if getattr(self, n) and n not in ("lr", "momentum", "seed", "diverge_threshold")]
+        return "-".join(f"{_NAME_PARTS[n]}{getattr(cfg, n):g}" for n in shown)
 
 
 def stack(trees: Sequence) -> object:
@@ -102,30 +113,25 @@ sweep_step = jax.jit(sweep_step_fn, static_argnums=0, donate_argnums=1)
 def init_sweep(variant: Variant, cfgs: Sequence[RunConfig]) -> tuple[TrainState, HParams]:
     """Stacked initial states and hyper-parameters, each configuration exactly as
     `cdrl train` would start it (parameters from `PRNGKey(seed)`)."""
-    hps = stack([HParams.create(variant, c.lr, c.momentum, diverge_threshold=c.diverge_threshold) for c in cfgs])
+    hps = stack([c.hparams(variant) for c in cfgs])
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
     params = init_params(variant, keys)
     carry = variant.init_carry(cfgs[0].batch)
     states = TrainState(
         params=params,
-        opt_state=jax.vmap(make_optimizer(take(hps, 0)).init)(params),
+        opt_state=jax.vmap(functools.partial(init_opt_state, hps.opt))(params),
         carry=jax.tree.map(lambda x: jnp.broadcast_to(x, (len(cfgs),) + x.shape), carry),
         step=jnp.zeros((len(cfgs),), jnp.int32),
     )
     return states, hps
 
 
-def _check_grid(cfgs: Sequence[RunConfig], variant: Variant) -> None:
+def _check_grid(variant: Variant) -> None:
     if variant.has_controller:
         raise ValueError(
             f"variant {variant.name!r} trains online against the game; sweeps cover the offline "
             "variants (train controller variants with `cdrl train`, one seed at a time)"
         )
-    for c in cfgs:
-        if c.lr <= 0 or not 0 <= c.momentum < 1:
-            raise ValueError(f"need lr > 0 and 0 <= momentum < 1, got lr={c.lr}, momentum={c.momentum}")
-        if not c.diverge_threshold > 0:
-            raise ValueError(f"diverge_threshold must be > 0, got {c.diverge_threshold}")
 
 
 StepCallback = Callable[[int, dict, float], None]
@@ -174,17 +180,18 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     run_dir = Path(run_dir)
     if (run_dir / "results.json").exists() or (run_dir / "sweep.json").exists():
         raise FileExistsError(f"{run_dir} already holds a sweep; pick another --run-dir")
+    _check_grid(make_variant(base.variant, base.arch))
+    cfgs = grid.configs(base)
+    cache = run_dir.parent / "data-cache"
+    episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
+    base = with_obs_norm(base, cache)  # the same statistics for every seed: one architecture
     cfgs = grid.configs(base)
     variant = make_variant(base.variant, base.arch)
-    _check_grid(cfgs, variant)
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "sweep.json", json.dumps(
         {"base": dataclasses.asdict(base), "grid": dataclasses.asdict(grid)}, indent=2) + "\n")
-
-    cache = run_dir.parent / "data-cache"
-    episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
     streams = _streams(cfgs, lambda c: episodes[c.seed][0])
-    runs = [RunDir(run_dir / config_name(c)) for c in cfgs]
+    runs = [RunDir(run_dir / grid.name(c)) for c in cfgs]
     for c, run in zip(cfgs, runs):
         run.write_config(c)
     names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
@@ -238,7 +245,7 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
 
 def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, params, episodes, diverged: dict | None) -> dict:
     train_eps, test_eps = episodes
-    row = {"name": config_name(cfg), "run_dir": str(run.path),
+    row = {"name": run.path.name, "run_dir": str(run.path),
            **{k: getattr(cfg, k) for k in GRID_FIELDS}, "diverged_at": None}
     row.update(diverged or {})
     losses = run.metrics.read()
@@ -249,9 +256,7 @@ def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, params, episodes,
     for split, eps in (("train", [train_eps[j] for j in range(min(n, len(train_eps)))]),
                        ("test", [test_eps[j] for j in range(min(n, len(test_eps)))])):
         scores = evaluate(variant, params, eps, cfg.unroll)
-        for key in ("bce", "copy_bce", "target_entropy", "code_pred_mse"):
-            value = scores.get(key)
-            row[f"{split}_{key}"] = float(value) if value is not None and math.isfinite(value) else None
+        row.update(prefixed(scores, split))
         if split == "test":
             steps = row["diverged_at"] if row["diverged_at"] is not None else cfg.steps
             run.evals.append([{"step": steps, "split": "test", **scores}])
@@ -260,7 +265,8 @@ def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, params, episodes,
 
 def format_results(rows: Sequence[dict]) -> str:
     """The sweep's rows as a Markdown table."""
-    head = "| config | lr | momentum | seed | threshold | final train BCE | test BCE | copy-last BCE | max ratio | diverged |"
+    head = ("| config | lr | momentum | seed | threshold | final train BCE | test BCE | copy-last BCE | entropy floor "
+            "| excess ratio | max norm ratio | diverged |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
 
     def num(v):
@@ -270,7 +276,7 @@ def format_results(rows: Sequence[dict]) -> str:
         div = "-" if r["diverged_at"] is None else f"step {r['diverged_at']} ({r['diverged_group']}, {r['diverged_ratio']:.3g})"
         lines.append(f"| {r['name']} | {r['lr']:g} | {r['momentum']:g} | {r['seed']} | {r['diverge_threshold']:g} | "
                      f"{num(r['final_loss'])} | {num(r['test_bce'])} | {num(r['test_copy_bce'])} | "
-                     f"{num(r['max_ratio'])} | {div} |")
+                     f"{num(r['test_target_entropy'])} | {num(r['test_excess_ratio'])} | {num(r['max_ratio'])} | {div} |")
     return "\n".join(lines)
 
 
@@ -287,11 +293,11 @@ def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, th
         raise ValueError(f"probe_steps must be >= 1, got {probe_steps}")
     if not threshold > 0:
         raise ValueError(f"threshold must be > 0, got {threshold}")
-    grid = Grid(lr=tuple(candidates), momentum=(base.momentum,), seed=(base.seed,), diverge_threshold=(threshold,))
-    cfgs = grid.configs(dataclasses.replace(base, steps=probe_steps))
-    variant = make_variant(base.variant, base.arch)
-    _check_grid(cfgs, variant)
+    _check_grid(make_variant(base.variant, base.arch))
     train_eps, _ = load_episodes(base, Path(data_cache))
+    base = with_obs_norm(dataclasses.replace(base, steps=probe_steps, diverge_threshold=threshold), Path(data_cache))
+    cfgs = Grid(lr=tuple(candidates)).configs(base)
+    variant = make_variant(base.variant, base.arch)
     streams = _streams(cfgs, lambda c: train_eps)
     names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
     largest = np.zeros(len(cfgs))

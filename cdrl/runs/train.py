@@ -20,6 +20,5 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
     run = RunDir(run_dir)
     cfg = run.config_for(cfg, resume, overrides)
     run.path.mkdir(parents=True, exist_ok=True)
-    variant = make_variant(cfg.variant, cfg.arch)
-    launch = online_train_run if variant.has_controller else offline_train_run
-    return launch(cfg, variant, run, resume, progress)
+    launch = online_train_run if make_variant(cfg.variant, cfg.arch).has_controller else offline_train_run
+    return launch(cfg, run, resume, progress)

@@ -7,6 +7,7 @@ codes) get each stage's loss weights in turn, with fresh optimiser momentum at t
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable
 
 import jax
@@ -15,7 +16,7 @@ import numpy as np
 
 from cdrl.data.stream import ChunkStream
 from cdrl.models.base import Variant
-from cdrl.training.optim import HParams, make_optimizer
+from cdrl.training.optim import HParams, init_opt_state
 from cdrl.training.step import TrainState, init_state, ratio_names, train_step
 
 
@@ -55,15 +56,15 @@ def enter_stage(variant: Variant, schedule, step: int, state: TrainState, hp: HP
     the stage it is inside.
 
     Works on a sweep's stacked state and hyper-parameters too (leading config axis on
-    every leaf and on `hp.lr`)."""
-    stacked = jnp.ndim(hp.lr) > 0
+    every leaf and on `hp.diverge_threshold`)."""
+    shape = jnp.shape(hp.diverge_threshold)
+    init = functools.partial(init_opt_state, hp.opt)
     for first, weights in schedule:
         if step == first and first > 0:
-            init = make_optimizer(hp).init
-            state = state.replace(opt_state=(jax.vmap(init) if stacked else init)(state.params))
+            state = state.replace(opt_state=(jax.vmap(init) if shape else init)(state.params))
         if step == first or (resumed and first <= step):
-            hp = HParams.create(variant, hp.lr, hp.momentum, weights, hp.diverge_threshold)
-            hp = hp.replace(loss_weights={k: jnp.broadcast_to(v, jnp.shape(hp.lr)) for k, v in hp.loss_weights.items()})
+            hp = hp.replace(loss_weights={k: jnp.broadcast_to(jnp.asarray(weights[k], jnp.float32), shape)
+                                          for k in hp.loss_weights})
     return state, hp
 
 

@@ -2,7 +2,7 @@
 
 One `online_step` is a jitted function: a `lax.scan` over T steps in which the model acts
 (its controller output ã is executed, with exploration noise) and the B games (`vmap`)
-answer; then the loss, the gradients and the SGD update. The games' outputs enter the graph
+answer; then the loss, the gradients and the optimiser update. The games' outputs enter the graph
 behind a stop-gradient (the game is not differentiable; the model's predictions are), and
 the model's own action output keeps its gradient as it is fed back (straight-through past
 the exploration noise and the clip to [0, 1]).
@@ -27,7 +27,8 @@ import optax
 
 from cdrl.data.frames import resize_obs
 from cdrl.models.base import StepInput, Variant, bce_with_logits
-from cdrl.training.monitor import NormRatioState, norm_ratio_monitor
+from cdrl.training.monitor import NormRatioState
+from cdrl.training.optim import OptHParams, init_opt_state, make_optimizer
 from cdrl.training.step import TrainState, all_finite, run_once, watched_groups
 
 SCOPES = ("controller", "all")
@@ -49,8 +50,7 @@ class OnlineConfig:
 class OnlineHParams:
     """Traced numbers of online training (a `vmap` sweep can vary any of them)."""
 
-    lr: jax.Array
-    momentum: jax.Array
+    opt: OptHParams  # the optimiser (SGD with momentum by default)
     ascent: jax.Array  # lambda: weight of the reward-ascent term
     reward_weight: jax.Array
     noise_std: jax.Array  # exploration noise on ã when acting
@@ -61,11 +61,15 @@ class OnlineHParams:
 
     @classmethod
     def create(cls, lr=0.1, momentum=0.9, ascent=0.1, reward_weight=0.1, noise_std=0.3, noise_decay=0.999,
-               warmup_steps=100, diverge_threshold=1e3, scope="controller") -> "OnlineHParams":
+               warmup_steps=100, diverge_threshold=1e3, scope="controller",
+               opt: OptHParams | None = None) -> "OnlineHParams":
+        """`opt`: the optimiser's numbers (default: SGD with `lr` and `momentum`, which it
+        replaces)."""
         if scope not in SCOPES:
             raise ValueError(f"unknown ascent scope {scope!r}; choose one of {SCOPES}")
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        return cls(f32(lr), f32(momentum), f32(ascent), f32(reward_weight), f32(noise_std), f32(noise_decay),
+        opt = opt if opt is not None else OptHParams.create(lr=lr, momentum=momentum)
+        return cls(opt, f32(ascent), f32(reward_weight), f32(noise_std), f32(noise_decay),
                    f32(warmup_steps), f32(diverge_threshold), f32(scope == "all"))
 
 
@@ -79,10 +83,6 @@ class OnlineState:
     key: jax.Array
     episode_return: jax.Array  # [B] running return of the current episodes
     episode_length: jax.Array  # [B]
-
-
-def optimizer(hp: OnlineHParams) -> optax.GradientTransformation:
-    return optax.chain(norm_ratio_monitor(), optax.sgd(hp.lr, momentum=hp.momentum))
 
 
 def _reset_games(game, env_params, key, n: int, size: int):
@@ -104,7 +104,7 @@ def _init_online(variant, game, env_params, cfg, key, hp) -> OnlineState:
     params = variant.init(k_params)
     obs, env_state = _reset_games(game, env_params, k_env, cfg.num_envs, variant.arch.image_size)
     b = cfg.num_envs
-    train = TrainState(params=params, opt_state=optimizer(hp).init(params),
+    train = TrainState(params=params, opt_state=init_opt_state(hp.opt, params),
                        carry=variant.init_carry(b), step=jnp.zeros((), jnp.int32))
     return OnlineState(train=train, env_state=env_state, obs=obs, action=jnp.zeros((b, variant.arch.action_dim)),
                        is_first=jnp.ones((b,), bool), key=k_run, episode_return=jnp.zeros((b,)),
@@ -185,7 +185,7 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
     (g_model,) = vjp((jnp.ones(()), jnp.zeros(())))
     (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
     grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _ascent_scope(g_reward, hp.ascent_all))
-    tx = optimizer(hp)
+    tx = make_optimizer(hp.opt)
     updates, opt_state = tx.update(grads, state.train.opt_state, params)
     new_params = optax.apply_updates(params, updates)
     monitor: NormRatioState = opt_state[0]

@@ -24,7 +24,7 @@ from cdrl.data.frames import as_float
 from cdrl.data.stream import Chunk
 from cdrl.models.base import StepInput, Variant
 from cdrl.training.monitor import NormRatioState, group_names
-from cdrl.training.optim import HParams, make_optimizer
+from cdrl.training.optim import HParams, init_opt_state, make_optimizer
 
 
 @flax.struct.dataclass
@@ -60,7 +60,7 @@ def init_state(variant: Variant, key: jax.Array, batch: int, hp: HParams | None 
     hp = hp if hp is not None else HParams.create(variant)
     return TrainState(
         params=params,
-        opt_state=make_optimizer(hp).init(params),
+        opt_state=init_opt_state(hp.opt, params),
         carry=variant.init_carry(batch),
         step=jnp.zeros((), jnp.int32),
     )
@@ -101,7 +101,7 @@ def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk
     """The un-jitted train step (for `vmap`/`scan` compositions); see `train_step`."""
     grad_fn = jax.value_and_grad(functools.partial(chunk_loss, variant), has_aux=True)
     (loss, (carry, terms, _)), grads = grad_fn(state.params, state.carry, hp, chunk)
-    updates, opt_state = make_optimizer(hp).update(grads, state.opt_state, state.params)
+    updates, opt_state = make_optimizer(hp.opt).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
 
     monitor: NormRatioState = opt_state[0]
