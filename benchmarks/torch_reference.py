@@ -7,7 +7,8 @@ give the training-throughput benchmark a conventional baseline
 
 For any `cdrl.models.arch.ArchConfig`:
 
-- observation encoder: the `arch.encoder` conv table (`nn.Conv2d`), SELU after every layer;
+- observation encoder: (frames - arch.obs_mean) / arch.obs_std, then the `arch.encoder`
+  conv table (`nn.Conv2d`), SELU after every layer;
 - observation decoder: its mirror of `nn.ConvTranspose2d` (PyTorch padding semantics),
   SELU inside, logits at the output (loss: BCE with logits, averaged over every pixel of
   every predicted frame of the chunk);
@@ -72,8 +73,8 @@ class TorchModel(nn.Module):
 
     # ------------------------------------------------------------------ pieces
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
-        """Frames `[N, H, W]` -> codes `[N, obs_code]`."""
-        x = frames.unsqueeze(1)
+        """Frames `[N, H, W]` -> codes `[N, obs_code]`; they enter as (frames - mean) / std."""
+        x = (frames.unsqueeze(1) - self.arch.obs_mean) / self.arch.obs_std
         for conv in self.enc:
             x = F.selu(conv(x))
         return x.reshape(x.shape[0], -1)

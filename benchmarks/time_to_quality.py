@@ -1,0 +1,218 @@
+"""Time to quality: seconds and training frames until `main` predicts held-out frames of the
+built-in game better than copying the last one.
+
+The figure of merit is the held-out excess ratio (BCE - entropy floor) / (copy-last BCE -
+entropy floor) on fixed held-out frames (every episode of the data set's test split): below
+1 the model beats copying the last frame. Each row trains from the same initial weights on
+the same chunks and evaluates every `--eval-every` steps; it reports the training seconds
+(wall clock of the train steps, the first step's compilation included and also given
+apart; evaluations excluded) and frames at which the ratio first falls below 1.0 and below
+0.5, or "not reached" and the ratio at the row's budget cap.
+
+Rows (`--rows`, any subset, run one after another in this process):
+  small-thesis       small preset, the thesis's recipe (SGD lr 0.1, momentum 0.9, B 1, raw input)
+  small-fast         small preset, the `fast` recipe (cdrl's best)
+  small-fast-torch   the same recipe, weights and chunks in the eager PyTorch reference
+                     (benchmarks/torch_reference.py), evaluated by cdrl's evaluation
+  thesis-fast        thesis preset (150 x 150, LSTM 512), the `fast` recipe
+
+    .venv/bin/python benchmarks/time_to_quality.py --rows small-fast small-fast-torch --cap 600
+    .venv/bin/python benchmarks/time_to_quality.py --quick     # seconds: does it run?
+
+One JSON line at the end; `--out FILE` also writes it to FILE.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from cdrl.data.stream import ChunkStream
+from cdrl.evaluation.metrics import evaluate
+from cdrl.models import make_variant
+from cdrl.runs.config import RunConfig
+from cdrl.runs.sources import load_episodes, with_obs_norm
+from cdrl.training.step import init_state, train_step
+
+ROWS = {
+    "small-thesis": dict(preset="small", recipe="thesis", framework="cdrl"),
+    "small-fast": dict(preset="small", recipe="fast", framework="cdrl"),
+    "small-fast-torch": dict(preset="small", recipe="fast", framework="torch"),
+    "thesis-fast": dict(preset="thesis", recipe="fast", framework="cdrl"),
+}
+TARGETS = (1.0, 0.5)
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS), help="rows to run, in order")
+    p.add_argument("--cap", type=float, default=1800.0, help="training seconds per row at most (default: 1800)")
+    p.add_argument("--caps", nargs="+", default=[], metavar="ROW=SECONDS", help="per-row caps, e.g. thesis-fast=3600")
+    p.add_argument("--episodes", type=int, default=60, help="episodes of the data set (default: 60)")
+    p.add_argument("--episode-steps", type=int, default=200, help="step limit of an episode (default: 200)")
+    p.add_argument("--level", default="thesis", help="game level (default: thesis)")
+    p.add_argument("--eval-every", type=int, default=0,
+                   help="steps between evaluations (default: 50 for the small preset, 100 for thesis)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the data set, the weights and the data order")
+    p.add_argument("--cache", default="runs/data-cache", help="data set cache (default: runs/data-cache)")
+    p.add_argument("--torch-threads", type=int, default=0, help="torch threads (default: all cores)")
+    p.add_argument("--quick", action="store_true", help="tiny caps and few episodes: a smoke run")
+    p.add_argument("--out", default=None, help="also write the JSON line to this file")
+    return p.parse_args(argv)
+
+
+def _config(row: dict, args) -> RunConfig:
+    cfg = RunConfig(variant="main", preset=row["preset"], recipe=row["recipe"], level=args.level,
+                    episodes=args.episodes, episode_steps=args.episode_steps, seed=args.seed,
+                    steps=1_000_000)
+    return with_obs_norm(cfg, Path(args.cache))
+
+
+class _Cdrl:
+    """cdrl's jitted train step on a `TrainState`."""
+
+    def __init__(self, cfg: RunConfig, variant, params):
+        self.variant, self.hp = variant, cfg.hparams(variant)
+        self.state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, self.hp)
+        self.state = self.state.replace(params=params)
+
+    def step(self, chunk) -> float:
+        self.state, metrics = train_step(self.variant, self.state, self.hp, chunk)
+        return float(metrics["loss"])  # waits for the step
+
+    def params(self):
+        return self.state.params
+
+
+class _Torch:
+    """The eager PyTorch reference, SGD with momentum, the recipe's schedule."""
+
+    def __init__(self, cfg: RunConfig, variant, params):
+        import torch
+
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import torch_reference as tr
+
+        if cfg.optimizer != "sgd" or cfg.grad_clip:
+            raise ValueError("the torch reference trains with SGD and no clipping only")
+        self.torch, self.tr = torch, tr
+        self.model = tr.load_cdrl_params(tr.TorchModel(variant.arch, "main"), params)
+        self.opt = tr.make_optimizer(self.model, lr=cfg.lr, momentum=cfg.momentum)
+        opt = cfg.opt_hparams()
+        factor = lambda count: float(opt.learning_rate(np.int32(count))) / cfg.lr  # noqa: E731
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, factor)
+        self.carry = self.model.init_carry(cfg.batch)
+
+    def step(self, chunk) -> float:
+        t = self.torch.from_numpy
+        loss, self.carry, _ = self.tr.train_step(self.model, self.opt, self.carry, t(np.asarray(chunk.obs)),
+                                                 t(np.asarray(chunk.next_obs)), t(np.asarray(chunk.is_first)),
+                                                 monitor=True)
+        self.sched.step()
+        return float(loss)
+
+    def params(self):
+        return jax.tree.map(np.asarray, self.tr.params_as_cdrl(self.model))
+
+
+def run_row(name: str, args, cap: float) -> dict:
+    spec = ROWS[name]
+    cfg = _config(spec, args)
+    cache = Path(args.cache)
+    train_eps, test_eps = load_episodes(cfg, cache)
+    held_out = [test_eps[i] for i in range(len(test_eps))]
+    variant = make_variant(cfg.variant, cfg.arch)
+    params = variant.init(jax.random.PRNGKey(cfg.seed))
+    trainer = (_Torch if spec["framework"] == "torch" else _Cdrl)(cfg, variant, params)
+    stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size, seed=cfg.seed)
+    eval_every = args.eval_every or (100 if cfg.preset == "thesis" else 50)
+    frames_per_step = cfg.batch * cfg.unroll
+
+    def ratio_now() -> dict:
+        t0 = time.perf_counter()
+        scores = evaluate(variant, trainer.params(), held_out, cfg.unroll)
+        return {"ratio": scores["excess_ratio"], "bce": scores["bce"], "eval_seconds": time.perf_counter() - t0}
+
+    first = ratio_now()
+    row = {"row": name, **spec, "level": cfg.level, "lr": cfg.lr, "momentum": cfg.momentum, "batch": cfg.batch,
+           "unroll": cfg.unroll, "optimizer": cfg.optimizer, "lr_schedule": cfg.lr_schedule,
+           "obs_norm": cfg.obs_norm, "fc_init_gain": cfg.fc_init_gain, "seed": cfg.seed, "cap_seconds": cap,
+           "train_episodes": len(train_eps), "held_out_frames": sum(len(e) - 1 for e in held_out),
+           "curve": [{"step": 0, "frames": 0, "seconds": 0.0, **first}]}
+    reached: dict[float, dict] = {}
+    seconds, step, compile_seconds = 0.0, 0, None
+    while seconds < cap and len(reached) < len(TARGETS):
+        chunk = stream.next_chunk()
+        t0 = time.perf_counter()
+        loss = trainer.step(chunk)
+        dt = time.perf_counter() - t0
+        if compile_seconds is None:
+            compile_seconds = dt
+        seconds += dt
+        step += 1
+        if not np.isfinite(loss):
+            row["diverged_at"] = step
+            break
+        if step % eval_every == 0 or seconds >= cap:
+            point = {"step": step, "frames": step * frames_per_step, "seconds": seconds, "loss": loss, **ratio_now()}
+            row["curve"].append(point)
+            print(f"{name}: step {step} ({seconds:.0f} s) excess ratio {point['ratio']:.3f}", file=sys.stderr, flush=True)
+            for target in TARGETS:
+                if target not in reached and point["ratio"] < target:
+                    reached[target] = {"seconds": seconds, "frames": point["frames"], "step": step}
+    last = row["curve"][-1]
+    full = evaluate(variant, trainer.params(), held_out, cfg.unroll)
+    row.update(copy_bce=full["copy_bce"], floor=full["target_entropy"], steps=step, train_seconds=seconds,
+               compile_seconds=compile_seconds, frames_per_second=step * frames_per_step / max(seconds, 1e-9),
+               ratio_at_end=last["ratio"], bce_at_end=last["bce"])
+    for target in TARGETS:
+        hit = reached.get(target)
+        key = f"to_{target:g}"
+        row[key] = hit if hit is not None else {"reached": False, "ratio_at_cap": last["ratio"], "seconds": seconds}
+    return row
+
+
+def main(argv=None) -> int:
+    args = _parse(argv)
+    caps = {name: args.cap for name in args.rows}
+    for item in args.caps:
+        name, _, value = item.partition("=")
+        if name not in ROWS:
+            raise SystemExit(f"--caps: unknown row {name!r}; rows are {list(ROWS)}")
+        caps[name] = float(value)
+    if args.quick:
+        caps = {name: 5.0 for name in args.rows}
+        args.episodes, args.episode_steps, args.eval_every = 8, 40, 2
+    if any(ROWS[r]["framework"] == "torch" for r in args.rows):
+        import torch
+
+        torch.set_num_threads(args.torch_threads or os.cpu_count())
+    result = {"benchmark": "time_to_quality", "variant": "main", "data": "built-in game, behaviour switching",
+              "episodes": args.episodes, "episode_steps": args.episode_steps, "level": args.level,
+              "cpu_count": os.cpu_count(), "python": platform.python_version(), "jax_version": jax.__version__,
+              "load_avg_start": os.getloadavg()[0], "quick": args.quick, "rows": []}
+    for name in args.rows:
+        result["rows"].append(run_row(name, args, caps[name]))
+    result["load_avg_end"] = os.getloadavg()[0]
+    rows = {r["row"]: r for r in result["rows"]}
+    if "small-fast" in rows and "small-fast-torch" in rows:
+        a, b = rows["small-fast"].get("to_1"), rows["small-fast-torch"].get("to_1")
+        if a.get("reached", True) and b.get("reached", True):
+            result["cdrl_over_torch_seconds_to_1"] = a["seconds"] / b["seconds"]
+    line = json.dumps(result)
+    if args.out:
+        Path(args.out).write_text(line + "\n")
+    print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

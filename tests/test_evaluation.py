@@ -1,0 +1,67 @@
+"""Held-out evaluation: the batched path against one episode at a time and against a direct
+computation, and the excess ratio."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdrl.data.episode import Episode
+from cdrl.data.synthetic import synthetic_episodes
+from cdrl.evaluation.metrics import COPY_EPS, evaluate, excess_ratio
+from cdrl.models import TINY, StepInput, make_variant
+
+
+def _episodes():
+    eps = synthetic_episodes(5, 40, TINY.image_size, seed=3)
+    return [Episode(e.frames[:n], e.actions[:n], e.rewards[:n]) for e, n in zip(eps, [40, 17, 33, 2, 25])]
+
+
+@pytest.mark.parametrize("name", ["main", "residual_error", "closed_loop_minus"])
+def test_batched_evaluation_equals_one_episode_at_a_time(name):
+    """Episodes of different lengths side by side (padding masked, carries independent) give
+    the per-episode path's numbers, transition-weighted."""
+    v = make_variant(name, TINY)
+    params = v.init(jax.random.PRNGKey(1))
+    eps = _episodes()
+    batched = evaluate(v, params, eps, unroll=8, batch=3)
+    singles = [evaluate(v, params, [ep], unroll=8, batch=1) for ep in eps]
+    weights = np.array([len(ep) - 1 for ep in eps], np.float64)
+    for key in ("bce", "copy_bce", "target_entropy"):
+        want = np.sum([s[key] * w for s, w in zip(singles, weights)]) / weights.sum()
+        assert batched[key] == pytest.approx(want, rel=1e-5), key
+    assert set(batched) >= {"bce", "copy_bce", "target_entropy", "excess_ratio"}
+    assert ("code_pred_mse" in batched) == v.shared_code_space
+
+
+def test_evaluation_equals_a_direct_computation():
+    """One episode, one chunk: the mean per-pixel BCE of the model's logits, the clipped copy of
+    the last frame, the targets' entropy, and the ratio of their gaps."""
+    v = make_variant("main", TINY)
+    params = v.init(jax.random.PRNGKey(2))
+    ep = _episodes()[0]
+    n = len(ep) - 1
+    got = evaluate(v, params, [ep], unroll=n)
+    obs = ep.frames[:-1].astype(np.float64) / 255
+    target = ep.frames[1:].astype(np.float64) / 255
+    xs = StepInput(obs=jnp.asarray(obs[:, None], jnp.float32), action=jnp.asarray(ep.actions[:-1, None]),
+                   is_first=jnp.arange(n)[:, None] == 0)
+    _, outs = jax.jit(v.unroll)(params, v.init_carry(1), xs)
+    logits = np.asarray(outs["logits"][:, 0], np.float64)
+    bce = np.mean(np.logaddexp(0, logits) - target * logits)
+    copy = np.clip(obs, COPY_EPS, 1 - COPY_EPS)
+    copy_bce = np.mean(-(target * np.log(copy) + (1 - target) * np.log(1 - copy)))
+    p = np.clip(target, 1e-7, 1 - 1e-7)
+    floor = np.mean(-(p * np.log(p) + (1 - p) * np.log(1 - p)))
+    assert got["bce"] == pytest.approx(bce, rel=1e-5)
+    assert got["copy_bce"] == pytest.approx(copy_bce, rel=1e-5)
+    assert got["target_entropy"] == pytest.approx(floor, rel=1e-5)
+    assert got["excess_ratio"] == pytest.approx((bce - floor) / (copy_bce - floor), rel=1e-4)
+
+
+def test_excess_ratio_reads_as_documented():
+    assert excess_ratio(0.48, 0.48, 0.47) == pytest.approx(1.0)  # as good as copying
+    assert excess_ratio(0.47, 0.48, 0.47) == 0.0  # at the floor
+    assert excess_ratio(0.475, 0.48, 0.47) == pytest.approx(0.5)
+    assert np.isnan(excess_ratio(0.5, 0.47, 0.47))  # copying already at the floor: undefined
+    with pytest.raises(ValueError, match="no episodes"):
+        evaluate(make_variant("main", TINY), None, [])

@@ -1,0 +1,69 @@
+"""The built-in game's levels: the background contrast knob is a linear blend toward the
+mean brightness, levels are named overrides, and a run's level reaches the data it trains on."""
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdrl.runs.config import LEVELS as RUN_LEVELS
+from cdrl.runs.config import RunConfig
+from cdrl.runs.sources import game_params, load_episodes
+from envs.slither import LEVELS, Slither, level_params
+
+
+@pytest.fixture(scope="module")
+def background_only():
+    """A state whose view holds no pellet and no opponent: away from the player's own body
+    (near the view's centre) every pixel is background."""
+    game = Slither()
+    state = game.reset_state(jax.random.PRNGKey(3), game.default_params)
+    far = state.x[0, 0] + game.arena_size / 2
+    state = state.replace(pellet_value=jnp.zeros_like(state.pellet_value),
+                          x=state.x.at[1:].set(far % game.arena_size))
+    return game, state
+
+
+def test_contrast_blends_the_background_toward_its_mean(background_only):
+    game, state = background_only
+    obs = {c: np.asarray(game.get_obs(state, level_params("thesis").replace(background_contrast=np.float32(c))))
+           for c in (0.0, 0.5, 1.0)}
+    corner = (slice(0, 30), slice(0, 30))  # 60 raw pixels from the head: no body there
+    flat, half, full = (obs[c][corner] for c in (0.0, 0.5, 1.0))
+    assert np.ptp(flat) < 1e-6  # no texture at contrast 0
+    assert np.ptp(full) > 0.05  # the hexagons at 1
+    np.testing.assert_allclose(half, (flat + full) / 2, atol=1e-5)
+    # The raw frame follows the same knob.
+    raw0 = np.asarray(game.render_raw(state, level_params("flat")))[:60, :60]
+    assert np.ptp(raw0.reshape(-1, 3), axis=0).max() <= 1
+
+
+def test_levels_are_named_overrides():
+    assert LEVELS["thesis"] == {} and set(LEVELS) == set(RUN_LEVELS)
+    clean = level_params("clean")
+    assert float(clean.background_contrast) == 0.0 and float(clean.pellet_init_fill) < 0.2
+    with pytest.raises(ValueError, match="unknown game level 'hard'; choose one of"):
+        level_params("hard")
+    cfg = RunConfig(level="flat", env="pellet_init_fill=0.3")
+    params = game_params(cfg)
+    assert float(params.background_contrast) == 0.0 and float(params.pellet_init_fill) == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="bad game parameter 'speed=fast'"):
+        game_params(dataclasses.replace(cfg, env="speed=fast"))
+
+
+def test_a_runs_level_reaches_its_data(tmp_path):
+    """The cached data set of a level is its own (a flat background has less spread) and its
+    manifest records the level's game parameters."""
+    base = dict(preset="small", episodes=2, episode_steps=8, data="game")
+    spread = {}
+    for level in ("thesis", "flat"):
+        train, _ = load_episodes(RunConfig(level=level, **base), tmp_path)
+        frames = np.concatenate([train[i].frames for i in range(len(train))]).astype(np.float32) / 255
+        spread[level] = float(np.median(frames.std(axis=(1, 2))))
+    assert spread["flat"] < 0.95 * spread["thesis"], spread
+    dirs = sorted(p for p in tmp_path.iterdir())
+    assert len(dirs) == 2 and dirs[1].name.endswith("-flat"), dirs
+    manifest = json.loads((dirs[1] / "manifest.json").read_text())
+    assert manifest["config"]["env_params"]["background_contrast"] == 0.0
