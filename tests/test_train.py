@@ -122,6 +122,11 @@ def test_large_learning_rate_stops_with_the_group_named_and_keeps_good_params():
     assert e.group in ratio_names(e.state)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(e.state.params))
     assert int(e.state.step) == e.step == len(seen)
+    # The parameters are the good ones of the steps before the bad one: the same run stopped
+    # just before it ends with the same parameters (not merely finite ones).
+    _, stream2, _, state2 = _setup(lr=1e3)
+    good, _ = fit(v, stream2, e.step, hp, state=state2)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=0), e.state.params, good.params)
 
 
 def test_nan_in_data_gives_a_clear_error():
