@@ -395,6 +395,12 @@ def test_vector_env_steps_all_games_and_autoresets():
     assert not (term | trunc).any() and (rew == 0).all()
     assert np.abs(obs3 - obs2).mean() > 0.01
     np.testing.assert_allclose(info["length"], PARAMS.init_length)
+    # The games restarted: their step count begins again, so they run 2 more steps before
+    # being truncated again (games that merely went on would be truncated at once).
+    _, _, term, trunc, _ = venv.step(a)
+    assert not (term | trunc).any()
+    _, _, term, trunc, _ = venv.step(a)
+    assert trunc.all()
 
 
 def test_move_bodies_follows_the_path_for_any_speed():
