@@ -15,8 +15,12 @@ BASE = dict(preset="tiny", data="synthetic", episodes=6, episode_steps=20, unrol
             steps=6, eval_every=0, eval_episodes=1, checkpoint_every=3)
 
 
+def records(run_dir):
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
 def losses(run_dir):
-    return [json.loads(line)["loss"] for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    return [r["loss"] for r in records(run_dir)]
 
 
 @pytest.mark.parametrize("variant", ["baseline_recurrent"])  # two stages; the stage switch must match too
@@ -41,11 +45,18 @@ def test_sweep_config_resumes_as_a_run(tmp_path):
     as the single run would have gone on."""
     base = RunConfig(variant="main", **BASE)
     rows = sweep_run(base, Grid(lr=(0.1, 0.05)), tmp_path / "sweep", progress=False)
+    swept = records(tmp_path / "sweep" / rows[1]["name"])
+    assert [r["step"] for r in swept] == list(range(6))
     cont = train_run(None, rows[1]["run_dir"], resume=True, overrides={"steps": 9}, progress=False)
     full = tmp_path / "full"
     train_run(RunConfig(variant="main", lr=0.05, **{**BASE, "steps": 9}), full, progress=False)
     assert cont["steps"] == 9
     np.testing.assert_allclose(losses(tmp_path / "sweep" / rows[1]["name"]), losses(full), rtol=2e-5, atol=1e-6)
+    # It went on from the sweep's checkpoint at step 6 (a run started over would match the
+    # losses too): the sweep's records of steps 0-5 are kept as they were, frames/s (a
+    # wall-clock measurement) included.
+    after = records(tmp_path / "sweep" / rows[1]["name"])
+    assert [r["step"] for r in after] == list(range(9)) and after[:6] == swept
 
 
 def test_diverging_config_stops_alone(tmp_path):
