@@ -55,10 +55,20 @@ def test_eval_runs_prints_a_table_and_returns_finite_rows(runs, capsys):
     assert "train BCE" in table and "test BCE" in table
     assert [row["run"] for row in rows] == ["a", "b"]
     assert [row["variant"] for row in rows] == ["main", "residual"]
-    for row in rows:
+    # One table line per run, after the header and its rule, with the run's numbers.
+    lines = table.strip().splitlines()
+    assert len(lines) == 4 and set(lines[1]) <= {"-", " "}
+    for line, row in zip(lines[2:], rows):
+        assert line.split()[:3] == [row["run"], row["variant"], "30"]
+        assert f"{row['train_bce']:.4f}" in line and f"{row['test_bce']:.4f}" in line
+    for run, row in zip(runs, rows):
         assert row["steps"] == 30 and row["train_episodes"] == row["test_episodes"] == 1
         for key in ("train_bce", "test_bce", "train_copy_bce", "test_copy_bce", "final_train_loss"):
             assert math.isfinite(row[key]) and row[key] > 0, key
+        assert row["test_bce"] >= row["test_target_entropy"] - 1e-6  # the floor of any BCE on those frames
+        # The final checkpoint on the same held-out episode as the run's own last evaluation.
+        logged = json.loads((run / "eval.jsonl").read_text().splitlines()[-1])
+        assert logged["step"] == 30 and row["test_bce"] == pytest.approx(logged["bce"], rel=1e-5)
         json.dumps(row, allow_nan=False)
     assert rows[0]["test_code_pred_mse"] is None
     assert math.isfinite(rows[1]["test_code_pred_mse"])
