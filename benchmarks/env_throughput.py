@@ -14,13 +14,27 @@ Measures
 costs more than it gains when the cores are busy; with ``--procs 2`` it gives each
 process its own core).
 
+Each figure is timed ``--repeats`` times (windows of ``--seconds`` each; the repeats
+of the batch sizes interleaved, so a change of load hits all of them). There is no
+paired reference to take a ratio against, so each figure is reported as the median
+over its repeats (the flat ``jax_batch{B}_obs_per_s``-style keys, as before) with
+its spread under ``spread`` (``{figure: {"repeats": [...], "min", "median",
+"max"}}``). ``jax_best_obs_per_s`` is the jax figure with the highest median
+(``jax_best_figure`` names it; ``jax_best_obs_per_s_min`` / ``_max`` its spread);
+``target_obs_per_s`` is 20,000 and ``target_met`` is true only when that median
+reaches it (``target_met_all_repeats`` when its minimum does too).
+
 Wall-clock figures depend on what else runs on the machine; the "obs per
 CPU-second" figures (observations / CPU time of the process) are less sensitive to
-other processes.
+other processes. The JSON records the 1-minute load average at the start
+(``load_avg_start``) and at the end (``load_avg_end``; ``load_avg_1min`` is the same,
+kept for older readers) and a ``warning`` when either is above half the CPUs.
 
-Prints one line per figure, then one JSON line with all figures.
+Prints one line per figure, then one JSON line with all figures (``--out FILE``
+also writes that line to FILE; committed results go to
+benchmarks/results/env_throughput.json).
 
-    python benchmarks/env_throughput.py [--quick] [--procs 2] [--single-thread]
+    python benchmarks/env_throughput.py [--quick] [--procs 2] [--single-thread] [--out FILE]
 """
 
 from __future__ import annotations
@@ -40,7 +54,10 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--quick", action="store_true", help="fewer batch sizes, short timing")
     ap.add_argument("--batch-sizes", type=int, nargs="*", default=None)
     ap.add_argument("--steps", type=int, default=64, help="steps per scanned call")
-    ap.add_argument("--seconds", type=float, default=None, help="timing window per figure")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="timing window per figure and repeat (default 3; --quick: 1)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed windows per figure (default 5; --quick: 3)")
+    ap.add_argument("--out", default=None, help="also write the final JSON line to this file")
     ap.add_argument("--procs", type=int, default=1, help="also run this many processes at once")
     ap.add_argument("--policy", default="uniform", choices=["uniform", "behaviour"])
     ap.add_argument("--single-thread", action="store_true",
@@ -81,43 +98,53 @@ def _make_rollout(policy_name: str, steps: int):
     return jax.jit(jax.vmap(start)), jax.jit(rollout)
 
 
-def _measure(policy_name: str, steps: int, batch: int, seconds: float, seed: int = 0,
-             barrier=None) -> dict:
-    """Observations per second (wall and CPU) of the jitted rollout at one batch size."""
-    import jax
+class _Rollout:
+    """The jitted rollout at one batch size, compiled and warmed up, games carried on."""
 
-    start, rollout = _make_rollout(policy_name, steps)
-    carry = start(jax.random.split(jax.random.PRNGKey(seed), batch))
-    t0 = time.perf_counter()
-    carry, frames = rollout(carry)
-    frames.block_until_ready()
-    first = time.perf_counter() - t0
-    carry, frames = rollout(carry)
-    frames.block_until_ready()
-    if barrier is not None:
-        barrier.wait()
-    n = 0
-    t0, c0 = time.perf_counter(), time.process_time()
-    while time.perf_counter() - t0 < seconds:
-        carry, frames = rollout(carry)
+    def __init__(self, policy_name: str, steps: int, batch: int, seed: int = 0):
+        import jax
+
+        start, self.rollout = _make_rollout(policy_name, steps)
+        self.carry = start(jax.random.split(jax.random.PRNGKey(seed), batch))
+        self.obs_per_call = batch * steps
+        t0 = time.perf_counter()
+        self._call()
+        self.first_call_s = time.perf_counter() - t0
+        self._call()
+
+    def _call(self):
+        self.carry, frames = self.rollout(self.carry)
         frames.block_until_ready()
-        n += batch * steps
-    wall = time.perf_counter() - t0
-    return {"obs_per_s": n / wall, "obs_per_cpu_s": n / max(time.process_time() - c0, 1e-9),
-            "first_call_s": first}
+
+    def window(self, seconds: float) -> dict:
+        """Observations per second (wall and CPU) over one timing window."""
+        n = 0
+        t0, c0 = time.perf_counter(), time.process_time()
+        while time.perf_counter() - t0 < seconds:
+            self._call()
+            n += self.obs_per_call
+        wall = time.perf_counter() - t0
+        return {"obs_per_s": n / wall, "obs_per_cpu_s": n / max(time.process_time() - c0, 1e-9)}
 
 
-def _worker(args, queue):
+def _worker(args, barrier, queue):
     sys.path.insert(0, ROOT)
-    queue.put(_measure(*args))
+    policy_name, steps, batch, seconds, repeats, seed = args
+    r = _Rollout(policy_name, steps, batch, seed)
+    rates = []
+    for _ in range(repeats):
+        barrier.wait()  # every process times the same window
+        rates.append(r.window(seconds)["obs_per_s"])
+    queue.put(rates)
 
 
-def _measure_procs(procs: int, policy_name: str, steps: int, batch: int, seconds: float) -> float:
+def _measure_procs(procs: int, policy_name: str, steps: int, batch: int, seconds: float, repeats: int) -> list[float]:
+    """Per repeat, the summed observations/s of `procs` processes running at once."""
     ctx = mp.get_context("spawn")
     barrier = ctx.Barrier(procs)
     queue = ctx.Queue()
     workers = [
-        ctx.Process(target=_worker, args=((policy_name, steps, batch, seconds, i, barrier), queue))
+        ctx.Process(target=_worker, args=((policy_name, steps, batch, seconds, repeats, i), barrier, queue))
         for i in range(procs)
     ]
     for w in workers:
@@ -125,10 +152,10 @@ def _measure_procs(procs: int, policy_name: str, steps: int, batch: int, seconds
     results = [queue.get() for _ in workers]
     for w in workers:
         w.join()
-    return sum(r["obs_per_s"] for r in results)
+    return [sum(rates) for rates in zip(*results)]
 
 
-def _measure_gym(seconds: float) -> float:
+def _measure_gym(seconds: float, repeats: int) -> list[float]:
     import numpy as np
 
     from envs.gym_env import SlitherEnv
@@ -138,51 +165,111 @@ def _measure_gym(seconds: float) -> float:
     rng = np.random.default_rng(0)
     for _ in range(20):
         env.step(rng.uniform(size=3).astype(np.float32))
-    n = 0
-    t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
-        _, _, terminated, truncated, _ = env.step(rng.uniform(size=3).astype(np.float32))
-        if terminated or truncated:
-            env.reset()
-        n += 1
-    return n / (time.perf_counter() - t0)
+    rates = []
+    for _ in range(repeats):
+        n = 0
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            _, _, terminated, truncated, _ = env.step(rng.uniform(size=3).astype(np.float32))
+            if terminated or truncated:
+                env.reset()
+            n += 1
+        rates.append(n / (time.perf_counter() - t0))
+    return rates
+
+
+TARGET_OBS_PER_S = 20_000.0  # README "Performance"
+
+
+def _spread(values: list[float]) -> dict:
+    import statistics
+
+    return {"repeats": [round(v, 1) for v in values], "min": round(min(values), 1),
+            "median": round(statistics.median(values), 1), "max": round(max(values), 1)}
 
 
 def main() -> None:
     args = _parse()
+    load_avg_start = os.getloadavg()[0]
     if args.single_thread:
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
     sys.path.insert(0, ROOT)
     batch_sizes = args.batch_sizes or ([1, 16, 64] if args.quick else [1, 16, 64, 256])
     seconds = args.seconds or (1.0 if args.quick else 3.0)
-    results: dict[str, float] = {}
+    repeats = args.repeats or (3 if args.quick else 5)
+    results: dict = {}
+    spread: dict[str, dict] = {}
+
+    def record(key: str, values: list[float]) -> dict:
+        spread[key] = _spread(values)
+        results[key] = spread[key]["median"]
+        return spread[key]
+
+    rollouts = {}
     for b in batch_sizes:
-        r = _measure(args.policy, args.steps, b, seconds)
-        results[f"jax_batch{b}_obs_per_s"] = round(r["obs_per_s"], 1)
-        results[f"jax_batch{b}_obs_per_cpu_s"] = round(r["obs_per_cpu_s"], 1)
+        rollouts[b] = _Rollout(args.policy, args.steps, b)
+        print(f"jax vmap batch {b:4d}: first call {rollouts[b].first_call_s:.1f} s", flush=True)
+    windows: dict[int, list[dict]] = {b: [] for b in batch_sizes}
+    for _ in range(repeats):
+        for b in batch_sizes:
+            windows[b].append(rollouts[b].window(seconds))
+    del rollouts
+    for b in batch_sizes:
+        w = record(f"jax_batch{b}_obs_per_s", [x["obs_per_s"] for x in windows[b]])
+        c = record(f"jax_batch{b}_obs_per_cpu_s", [x["obs_per_cpu_s"] for x in windows[b]])
         print(
-            f"jax vmap batch {b:4d}: {r['obs_per_s']:10.0f} obs/s  "
-            f"{r['obs_per_cpu_s']:10.0f} obs per CPU-second  (first call {r['first_call_s']:.1f} s)",
+            f"jax vmap batch {b:4d}: {w['median']:10.0f} obs/s [{w['min']:.0f}, {w['max']:.0f}]  "
+            f"{c['median']:10.0f} obs per CPU-second [{c['min']:.0f}, {c['max']:.0f}]  "
+            f"(median [min, max] over {repeats} repeats)",
             flush=True,
         )
     if args.procs > 1:
         for b in batch_sizes:
             if b < 8:
                 continue
-            rate = _measure_procs(args.procs, args.policy, args.steps, b, seconds)
-            results[f"jax_batch{b}_x{args.procs}procs_obs_per_s"] = round(rate, 1)
-            print(f"jax vmap batch {b:4d} x {args.procs} processes: {rate:10.0f} obs/s", flush=True)
-    gym_rate = _measure_gym(seconds)
-    results["gym_single_obs_per_s"] = round(gym_rate, 1)
-    print(f"gymnasium SlitherEnv.step: {gym_rate:10.0f} obs/s", flush=True)
-    results["jax_best_obs_per_s"] = max(
-        (v for k, v in results.items() if k.startswith("jax_") and k.endswith("_obs_per_s")), default=0.0
-    )
+            rates = _measure_procs(args.procs, args.policy, args.steps, b, seconds, repeats)
+            w = record(f"jax_batch{b}_x{args.procs}procs_obs_per_s", rates)
+            print(f"jax vmap batch {b:4d} x {args.procs} processes: {w['median']:10.0f} obs/s "
+                  f"[{w['min']:.0f}, {w['max']:.0f}]", flush=True)
+    w = record("gym_single_obs_per_s", _measure_gym(seconds, repeats))
+    print(f"gymnasium SlitherEnv.step: {w['median']:10.0f} obs/s [{w['min']:.0f}, {w['max']:.0f}]", flush=True)
+    wall_keys = [k for k in spread if k.startswith("jax_") and k.endswith("_obs_per_s")]
+    best = max(wall_keys, key=lambda k: spread[k]["median"]) if wall_keys else None
+    results["jax_best_figure"] = best
+    results["jax_best_obs_per_s"] = spread[best]["median"] if best else 0.0
+    results["jax_best_obs_per_s_min"] = spread[best]["min"] if best else None
+    results["jax_best_obs_per_s_max"] = spread[best]["max"] if best else None
+    results["target_obs_per_s"] = TARGET_OBS_PER_S
+    results["target_met"] = bool(best) and spread[best]["median"] >= TARGET_OBS_PER_S
+    results["target_met_all_repeats"] = bool(best) and spread[best]["min"] >= TARGET_OBS_PER_S
+    results["spread"] = spread
+    results["repeats"] = repeats
+    results["seconds_per_repeat"] = seconds
     results["xla_flags"] = os.environ.get("XLA_FLAGS", "")
     results["cpu_count"] = os.cpu_count()
-    results["load_avg_1min"] = round(os.getloadavg()[0], 2)
+    results["load_avg_start"] = round(load_avg_start, 2)
+    results["load_avg_end"] = round(os.getloadavg()[0], 2)
+    results["load_avg_1min"] = results["load_avg_end"]
     results["steps_per_call"] = args.steps
-    print(json.dumps(results))
+    busy = max(results["load_avg_start"], results["load_avg_end"])
+    if busy > 0.5 * (os.cpu_count() or 1):
+        results["warning"] = (f"machine busy (load average up to {busy:.1f} on {os.cpu_count()} CPUs): "
+                              "wall-clock figures are unreliable")
+        print("warning: " + results["warning"], file=sys.stderr, flush=True)
+    if best:
+        print(f"best: {best} median {spread[best]['median']:.0f} obs/s [min {spread[best]['min']:.0f}, max "
+              f"{spread[best]['max']:.0f}]: target {TARGET_OBS_PER_S:.0f} obs/s "
+              f"{'met' if results['target_met'] else 'missed'} (by the median"
+              f"{'; not by every repeat: within the noise' if results['target_met'] and not results['target_met_all_repeats'] else ''}"
+              f"{'; met by some repeats: within the noise' if not results['target_met'] and spread[best]['max'] >= TARGET_OBS_PER_S else ''})",
+              flush=True)
+    print(f"load average: {results['load_avg_start']:.2f} at the start, {results['load_avg_end']:.2f} at the end", flush=True)
+    line = json.dumps(results)
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(args.out, "w") as f:
+            f.write(line + "\n")
+    print(line)
 
 
 if __name__ == "__main__":

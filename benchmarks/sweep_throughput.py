@@ -6,19 +6,35 @@ momentum, the norm-ratio monitor, the divergence selects) on the same synthetic 
   * sequential: N separate states, each advanced by the jitted single-config `train_step`
     (one compiled program shared by all N), config after config;
   * sweep: one stacked state advanced by `cdrl.runs.sweep.sweep_step` (one compiled program).
-After warm-up (both compile), `--repeats` alternating repeats of `--steps` steps per config;
-reported: training frames/s of each (all configs' frames; median over repeats), their ratio,
-compile times. One JSON line at the end.
+After warm-up (both compile), `--repeats` alternating repeats of `--steps` steps per config
+(sequential, then sweep, then sequential, ...). Reported: training frames/s of each (all configs'
+frames; median over repeats, and every repeat), compile times, and the speed-up sweep /
+sequential with its spread:
+
+  * `speedup`: median sweep frames/s over median sequential frames/s (as before);
+  * `ratio_repeats`: the speed-up of each repeat (its sweep frames/s over the sequential frames/s
+    measured just before it, in the same repeat), and `ratio_min`, `ratio_median`, `ratio_max` of
+    those per-repeat ratios;
+  * `target` (4x, defined for an 8-config sweep; null for other N) and `target_met`: true only
+    when `ratio_median` reaches it (`target_met_all_repeats`: when `ratio_min` does too);
+  * `load_avg_start`, `load_avg_end`: the 1-minute load average before and after (wall-clock
+    figures depend on what else runs on the machine).
+
+Prints a summary line, then one JSON line at the end (`--out FILE` also writes that line to FILE;
+committed results go to benchmarks/results/sweep_throughput.json).
 
     .venv/bin/python benchmarks/sweep_throughput.py               # small preset, B 1, 8 configs
     .venv/bin/python benchmarks/sweep_throughput.py --preset thesis --steps 2
+    .venv/bin/python benchmarks/sweep_throughput.py --quick       # tiny preset, a smoke test
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -39,16 +55,33 @@ def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
                  reward=np.zeros(lead + (T, B), np.float32), is_first=np.zeros(lead + (T, B), bool))
 
 
+# The target speed-up of a sweep over running its configurations one after another, by number
+# of configurations (README "Sweeps": 4x for an 8-config sweep).
+TARGETS = {8: 4.0}
+
+
+def spread(values) -> dict:
+    """min / median / max of a list of per-repeat figures."""
+    return {"min": float(np.min(values)), "median": float(np.median(values)), "max": float(np.max(values))}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variant", default="main", help="model variant (default: main)")
-    parser.add_argument("--preset", default="small", help="architecture preset (default: small)")
+    parser.add_argument("--preset", default=None, help="architecture preset (default: small; --quick: tiny)")
     parser.add_argument("--configs", type=int, default=8, help="configurations N (default: 8)")
     parser.add_argument("--batch", type=int, default=1, help="streams per config B (default: 1)")
-    parser.add_argument("--unroll", type=int, default=32, help="T (default: 32)")
-    parser.add_argument("--steps", type=int, default=5, help="steps per config per repeat (default: 5)")
+    parser.add_argument("--unroll", type=int, default=None, help="T (default: 32; --quick: 8)")
+    parser.add_argument("--steps", type=int, default=None, help="steps per config per repeat (default: 5; --quick: 2)")
     parser.add_argument("--repeats", type=int, default=3, help="alternating repeats (default: 3)")
+    parser.add_argument("--quick", action="store_true", help="a smoke test: tiny preset, T 8, 2 steps per repeat")
+    parser.add_argument("--out", type=Path, default=None, help="also write the final JSON line to this file")
     args = parser.parse_args(argv)
+    defaults = {"preset": "tiny", "unroll": 8, "steps": 2} if args.quick else {"preset": "small", "unroll": 32, "steps": 5}
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    load_avg_start = os.getloadavg()[0]
 
     arch = preset(args.preset)
     variant = make_variant(args.variant, arch)
@@ -93,19 +126,45 @@ def main(argv=None) -> int:
             np.asarray(m["loss"])
         sweep_fps.append(frames / (time.perf_counter() - t0))
 
+    ratios = [sw / sq for sq, sw in zip(seq_fps, sweep_fps)]
+    r_spread = spread(ratios)
+    target = TARGETS.get(n)
     result = {
         "benchmark": "sweep_throughput", "variant": args.variant, "preset": args.preset, "configs": n,
-        "batch": B, "unroll": T, "steps_per_repeat": args.steps, "repeats": args.repeats,
-        "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg()[0],
+        "batch": B, "unroll": T, "steps_per_repeat": args.steps, "repeats": args.repeats, "quick": args.quick,
+        "cpu_count": os.cpu_count(), "load_avg_start": load_avg_start,
         "sequential_frames_per_s": float(np.median(seq_fps)), "sweep_frames_per_s": float(np.median(sweep_fps)),
         "sequential_repeats": [round(x, 1) for x in seq_fps], "sweep_repeats": [round(x, 1) for x in sweep_fps],
         "compile_single_s": compile_single, "compile_sweep_s": compile_sweep,
     }
     result["speedup"] = result["sweep_frames_per_s"] / result["sequential_frames_per_s"]
+    result.update({
+        "ratio_definition": "sweep frames/s / sequential frames/s of the same repeat (measured back to back)",
+        "ratio_repeats": [round(x, 4) for x in ratios],
+        "ratio_min": r_spread["min"], "ratio_median": r_spread["median"], "ratio_max": r_spread["max"],
+        "target": target,
+        "target_met": None if target is None else bool(r_spread["median"] >= target),
+        "target_met_all_repeats": None if target is None else bool(r_spread["min"] >= target),
+        "load_avg_end": os.getloadavg()[0],
+    })
+    busy = max(load_avg_start, result["load_avg_end"])
+    if busy > 0.5 * (os.cpu_count() or 1):
+        result["warning"] = (f"machine busy (load average up to {busy:.1f} on {os.cpu_count()} CPUs): "
+                             "wall-clock figures are unreliable")
+        print("warning: " + result["warning"], file=sys.stderr, flush=True)
+    verdict = "no target for this N" if target is None else \
+        f"target x{target:g} {'met' if result['target_met'] else 'missed'} (median)"
     print(f"{args.variant} {args.preset} N={n} B={B} T={T}: {n} runs one after another "
           f"{result['sequential_frames_per_s']:.0f} frames/s, one vmapped sweep {result['sweep_frames_per_s']:.0f} "
-          f"frames/s: x{result['speedup']:.2f} (compile {compile_single:.1f} s single, {compile_sweep:.1f} s sweep)")
-    print(json.dumps(result))
+          f"frames/s: x{result['speedup']:.2f}; per-repeat speed-up median x{r_spread['median']:.2f} "
+          f"[min {r_spread['min']:.2f}, max {r_spread['max']:.2f}] over {len(ratios)} repeats, {verdict} "
+          f"(compile {compile_single:.1f} s single, {compile_sweep:.1f} s sweep; "
+          f"load {load_avg_start:.2f} -> {result['load_avg_end']:.2f})")
+    line = json.dumps(result)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(line + "\n")
+    print(line)
     return 0
 
 

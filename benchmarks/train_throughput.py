@@ -15,10 +15,18 @@ first call, which compiles; torch: a few steps), then runs `--repeats` ALTERNATI
 (cdrl repeat, torch repeat, ...) of `--steps-per-repeat` steps each. Every step of both reads
 its loss back to the host (as a training loop that logs does). Reported per configuration:
 
-  * training frames/s of each (median over the repeats; frames = T * B per step) and the
-    ratio cdrl / torch;
+  * training frames/s of each (median over the repeats, and every repeat; frames = T * B per
+    step) and the ratio cdrl / torch: `ratio_cdrl_over_torch` is the ratio of the two medians;
+    `ratio_repeats` is the ratio of each repeat (cdrl's frames/s over torch's, the two measured
+    back to back in that repeat) and `ratio_min`, `ratio_median`, `ratio_max` summarise them;
+  * `target` (the cdrl / torch speed-up asked for, thesis preset only: 2 for `main`, 1.5 for
+    `closed_loop_minus` at B 1; null elsewhere) and `target_met`: true only when `ratio_median`
+    reaches it (`target_met_all_repeats`: when `ratio_min` does too). The spread is printed next
+    to the verdict: a median that meets the target while `ratio_min` does not is within the noise;
   * cdrl's compile time: the first call of the train step (trace + lower + compile + one
-    step), with jax's persistent compilation cache disabled for the whole benchmark;
+    step), with jax's persistent compilation cache disabled for the whole benchmark; one
+    measurement per configuration (no spread), against the target of 30 s
+    (`compile_target_s`, `compile_target_met`);
   * peak memory of each: the process's peak RSS (VmHWM) during that framework's repeats,
     after resetting it (writing 5 to /proc/self/clear_refs, after a malloc_trim) before each
     repeat; reported as the peak itself and as the growth over the RSS at the reset. This is
@@ -40,7 +48,8 @@ Online training of `final_proposal` (cdrl only: there is NO torch reference for 
 `cdrl.training.online.online_step` is a jitted program that acts in B (= each `--batches` entry)
 built-in games (simulated and rendered at 150x150, resized to the preset's image size) for T
 steps and learns from them, so its frames/s (frames = num_envs * unroll per update) include
-the games and are not comparable with the offline figures. Its compile time (first call) is
+the games and are not comparable with the offline figures (no ratio, so only the spread of its
+frames/s over the repeats: `frames_per_s_min`, `frames_per_s_max`, the median being `frames_per_s`). Its compile time (first call) is
 reported too (about a minute on 2 cores even for the small preset). `--online-batches` picks
 the numbers of games (default: `--batches`; `--quick`: the smallest), `--skip-online` leaves
 it out.
@@ -50,8 +59,11 @@ that other processes keep busy, torch with as many threads as cores can be many 
 than with one (its OpenMP threads wait for each other): run on an idle machine, or compare
 with `--torch-threads 1`.
 
-Prints a table, then ONE JSON line with every figure. Wall-clock figures depend on what else
-runs on the machine (the JSON records the load average).
+Prints a table, then ONE JSON line with every figure (`--out FILE` also writes that line to FILE;
+committed results go to benchmarks/results/train_throughput.json). Wall-clock figures depend on
+what else runs on the machine: the JSON records the 1-minute load average at the start
+(`load_avg_start`) and at the end (`load_avg_end`) and a `warning` when either is above half the
+number of CPUs.
 
     .venv/bin/python benchmarks/train_throughput.py                 # thesis preset
     .venv/bin/python benchmarks/train_throughput.py --quick         # small preset, T=8, B=2, few steps
@@ -77,6 +89,31 @@ MiB = 1024 * 1024
 # Building the initial weights is set-up, not measured: compile it with LLVM optimisation
 # off (the truncated-normal initialisers otherwise take ~30 s to compile on 2 cores).
 _FAST_COMPILE = {"xla_backend_optimization_level": 0}
+# The cdrl / torch training-throughput targets (README "Against PyTorch"), defined for the
+# thesis-sized model: (variant, B) -> minimum ratio, None meaning any B.
+TARGETS = {("main", None): 2.0, ("closed_loop_minus", 1): 1.5}
+TARGET_PRESET = "thesis"
+COMPILE_TARGET_S = 30.0
+
+
+def target_for(preset_name: str, variant: str, batch: int) -> float | None:
+    if preset_name != TARGET_PRESET:
+        return None
+    return TARGETS.get((variant, batch), TARGETS.get((variant, None)))
+
+
+def spread(values) -> dict:
+    """min / median / max of per-repeat figures."""
+    return {"min": min(values), "median": statistics.median(values), "max": max(values)}
+
+
+def ratio_fields(ratios: list[float], target: float | None) -> dict:
+    """The per-repeat ratios, their spread and the verdict against `target` (from the median)."""
+    s = spread(ratios)
+    return {"ratio_repeats": list(ratios), "ratio_min": s["min"], "ratio_median": s["median"],
+            "ratio_max": s["max"], "target": target,
+            "target_met": None if target is None else bool(s["median"] >= target),
+            "target_met_all_repeats": None if target is None else bool(s["min"] >= target)}
 
 
 def _parse() -> argparse.Namespace:
@@ -337,7 +374,12 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
     out["cdrl"]["compile_s"] = compile_s
     out["cdrl"]["compile_peak_rss_mib"] = compile_mem.peak_mib
     out["cdrl"]["compile_peak_growth_mib"] = compile_mem.growth_mib
+    out["cdrl"]["compile_target_s"] = COMPILE_TARGET_S
+    out["cdrl"]["compile_target_met"] = bool(compile_s < COMPILE_TARGET_S) if args.preset == TARGET_PRESET else None
     out["ratio_cdrl_over_torch"] = out["cdrl"]["frames_per_s"] / out["torch"]["frames_per_s"]
+    # Repeat i ran cdrl then torch back to back: cdrl frames/s / torch frames/s = torch time / cdrl time.
+    out.update(ratio_fields([tt / tc for tc, tt in zip(times["cdrl"], times["torch"])],
+                            target_for(args.preset, name, B)))
     return out
 
 
@@ -382,8 +424,10 @@ def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
     frames = B * T
     step_s = statistics.median(times)
     peak, growth = _worst(mem)
+    fps = [frames / t for t in times]
     return {"variant": "final_proposal", "num_envs": B, "unroll": T, "frames_per_step": frames,
-            "frames_per_s": frames / step_s, "frames_per_s_repeats": [frames / t for t in times],
+            "frames_per_s": frames / step_s, "frames_per_s_repeats": fps,
+            "frames_per_s_min": min(fps), "frames_per_s_max": max(fps),
             "step_s": step_s, "compile_s": compile_s, "compile_peak_rss_mib": compile_mem.peak_mib,
             "peak_rss_mib": peak, "peak_growth_mib": growth}
 
@@ -419,10 +463,24 @@ def print_table(res: dict) -> None:
           "XLA cost_analysis flops per step (scan body once): "
           + ", ".join(f"{r['variant']}/B{r['batch']}: {r['xla_flops_per_step'] / 1e9:.2f} G "
                       f"(analytic {r['model_flops_per_step'] / 1e9:.2f} G)" for r in res["configs"]))
+    print("cdrl / torch per repeat (the two measured back to back): median [min, max]; a target is met "
+          "only when the median meets it")
+    for r in res["configs"]:
+        if r["target"] is None:
+            verdict = f"no target ({'not the ' + TARGET_PRESET + ' preset' if res['preset'] != TARGET_PRESET else 'none for this B'})"
+        else:
+            verdict = f"target {r['target']:g}: {'met' if r['target_met'] else 'missed'}"
+            if r["target_met"] and not r["target_met_all_repeats"]:
+                verdict += " (not by every repeat: within the noise)"
+            elif not r["target_met"] and r["ratio_max"] >= r["target"]:
+                verdict += " (met by some repeats: within the noise)"
+        print(f"  {r['variant']:18s} B {r['batch']:3d}: {r['ratio_median']:.3f} [{r['ratio_min']:.3f}, "
+              f"{r['ratio_max']:.3f}] over {len(r['ratio_repeats'])} repeats; {verdict}")
     for r in res.get("online", []):
         print(f"online final_proposal (cdrl only, games included) num_envs {r['num_envs']:3d}: "
-              f"{r['frames_per_s']:9.1f} frames/s, step {1e3 * r['step_s']:.1f} ms, "
-              f"compile {r['compile_s']:.1f} s, peak {_fmt(r['peak_rss_mib'])} MiB")
+              f"{r['frames_per_s']:9.1f} frames/s [{r['frames_per_s_min']:.1f}, {r['frames_per_s_max']:.1f}], "
+              f"step {1e3 * r['step_s']:.1f} ms, compile {r['compile_s']:.1f} s, peak {_fmt(r['peak_rss_mib'])} MiB")
+    print(f"load average: {res['load_avg_start']:.2f} at the start, {res['load_avg_end']:.2f} at the end")
 
 
 def main() -> None:
@@ -480,9 +538,17 @@ def main() -> None:
             print(f"  online final_proposal num_envs={B}: {r['frames_per_s']:.1f} frames/s, "
                   f"compile {r['compile_s']:.1f} s", file=sys.stderr, flush=True)
     res["load_avg_end"] = os.getloadavg()[0]
+    if res["load_avg_end"] > 0.5 * os.cpu_count() and "warning" not in res:
+        res["warning"] = (f"machine busy at the end (load average {res['load_avg_end']:.1f} on {os.cpu_count()} CPUs): "
+                          f"timings are unreliable")
+        print("warning: " + res["warning"], file=sys.stderr, flush=True)
+    res["targets"] = {"preset": TARGET_PRESET, "cdrl_over_torch": {f"{v}/B{'any' if b is None else b}": t
+                                                                   for (v, b), t in TARGETS.items()},
+                      "compile_s_below": COMPILE_TARGET_S, "verdict_from": "ratio_median"}
     print_table(res)
     line = json.dumps(_rounded(res))
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(line + "\n")
     print(line)
 
