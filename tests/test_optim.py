@@ -127,6 +127,8 @@ def test_recipes_fill_only_what_the_run_does_not_set():
     assert (mixed.lr, mixed.batch, mixed.momentum) == (0.3, 8, 0.9)
     fast = RunConfig()
     assert fast.recipe == "fast" and all(getattr(fast, k) == v for k, v in RECIPES["fast"].items())
+    online = RunConfig(variant="final_proposal")
+    assert (online.lr, online.batch, online.unroll, online.fc_init_gain, online.obs_norm) == (0.1, 8, 16, 1.0, "data")
     # A config.json from before recipes (no 'recipe', none of the new options) reads as the thesis's.
     old = {k: v for k, v in dataclasses.asdict(RunConfig(recipe="thesis")).items()
            if k not in RECIPES["thesis"] and k not in ("recipe", "level", "obs_mean", "obs_std", "lr_decay_steps")}
@@ -135,6 +137,7 @@ def test_recipes_fill_only_what_the_run_does_not_set():
     for bad, match in ((dict(recipe="quick"), "unknown recipe 'quick'"), (dict(optimizer="adagrad"), "optimizer must be one of"),
                        (dict(lr_schedule="step"), "lr_schedule must be one of"), (dict(obs_norm="batch"), "obs_norm must be"),
                        (dict(b2=1.0), "0 <= b2 < 1"), (dict(grad_clip=-1.0), "grad_clip must be >= 0"),
-                       (dict(level="hard"), "level must be one of"), (dict(diverge_threshold=0.0), "diverge_threshold must be > 0")):
+                       (dict(level="hard"), "level must be one of"), (dict(diverge_threshold=0.0), "diverge_threshold must be > 0"),
+                       (dict(variant="mian"), "unknown variant 'mian'")):
         with pytest.raises(ValueError, match=match):
             RunConfig(**bad)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
 from cdrl.models.base import Variant
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
@@ -30,6 +31,13 @@ RECIPES: dict[str, dict[str, object]] = {
         "lr_schedule": "constant", "lr_warmup": 0, "batch": 4, "unroll": 32, "obs_norm": "data",
         "fc_init_gain": 5.0,
     },
+}
+# Controller variants train online against the game on their own actions; their reward
+# terms make large steps diverge (measured: lr 1, or an FC gain of 5, blow up within 10
+# updates), so `fast` keeps the controller experiments' rate, streams and horizon for them.
+ONLINE_OVERRIDES: dict[str, dict[str, object]] = {
+    "thesis": {},
+    "fast": {"lr": 0.1, "batch": 8, "unroll": 16, "fc_init_gain": 1.0},
 }
 DEFAULT_RECIPE = "fast"
 OBS_NORMS = ("none", "data")
@@ -90,7 +98,9 @@ class RunConfig:
     def __post_init__(self):
         if self.recipe not in RECIPES:
             raise ValueError(f"unknown recipe {self.recipe!r}; choose one of {sorted(RECIPES)}")
-        for name, value in RECIPES[self.recipe].items():
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant {self.variant!r}; choose one of {sorted(VARIANTS)}")
+        for name, value in self.recipe_values().items():
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
         if self.lr_schedule == "cosine" and self.lr_decay_steps == 0:
@@ -114,6 +124,11 @@ class RunConfig:
             raise ValueError(f"diverge_threshold must be > 0, got {self.diverge_threshold}")
         if not self.obs_std > 0 or not self.fc_init_gain > 0:
             raise ValueError(f"obs_std and fc_init_gain must be > 0; got {self.obs_std} and {self.fc_init_gain}")
+
+    def recipe_values(self) -> dict[str, object]:
+        """The options the run's recipe sets for its variant."""
+        online = ONLINE_OVERRIDES[self.recipe] if VARIANTS[self.variant].has_controller else {}
+        return {**RECIPES[self.recipe], **online}
 
     @property
     def arch(self) -> ArchConfig:

@@ -134,14 +134,14 @@ def _check_grid(variant: Variant) -> None:
         )
 
 
-StepCallback = Callable[[int, dict, float], None]
+StepCallback = Callable[[int, dict, float, TrainState], None]
 
 
 def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, ChunkStream], steps: int,
              callback: StepCallback | None = None, on_diverge: Callable[[int, int, TrainState], None] | None = None):
     """The host loop of a sweep: `steps` vmapped train steps. `streams` maps each seed to
-    its data stream. `callback(step, metrics, seconds)` sees every step's metrics (numpy,
-    config axis first); `on_diverge(step, i, state_i)` sees the last good state of a
+    its data stream. `callback(step, metrics, seconds, states)` sees every step's metrics
+    (numpy, config axis first) and the stacked states after it; `on_diverge(step, i, state_i)` sees the last good state of a
     configuration at the step it diverges. Returns (stacked final states, alive mask)."""
     states, hps = init_sweep(variant, cfgs)
     alive = jnp.ones((len(cfgs),), bool)
@@ -160,7 +160,7 @@ def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, Chu
                 on_diverge(step, int(i), take(states, int(i)))
         metrics["alive_before"] = was_alive
         if callback is not None:
-            callback(step, metrics, seconds)
+            callback(step, metrics, seconds, states)
     return states, np.asarray(alive)
 
 
@@ -209,7 +209,11 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     pending: list[list[dict]] = [[] for _ in cfgs]
     sweep_fps: list[float] = []
 
-    def callback(step: int, metrics: dict, seconds: float) -> None:
+    def held_out(i: int) -> list:
+        test_eps = episodes[cfgs[i].seed][1]
+        return [test_eps[j] for j in range(min(cfgs[i].eval_episodes, len(test_eps)))]
+
+    def callback(step: int, metrics: dict, seconds: float, states: TrainState) -> None:
         sweep_fps.append(len(cfgs) * frames / max(seconds, 1e-9))
         for i in range(len(cfgs)):
             if not metrics["alive_before"][i]:
@@ -220,7 +224,12 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
                                "finite": bool(metrics["finite"][i])}
                 continue
             pending[i].append(step_record(step, take(metrics, i), names, frames / max(seconds, 1e-9)))
-        if (step + 1) % base.checkpoint_every == 0:
+        done = step + 1
+        if base.eval_every and done % base.eval_every == 0 and done < base.steps:
+            for i in np.flatnonzero(metrics["alive_before"] & ~metrics["diverged"]):
+                scores = evaluate(variant, take(states.params, int(i)), held_out(int(i)), cfgs[i].unroll)
+                runs[i].evals.append([{"step": done, "split": "test", **scores}])
+        if done % base.checkpoint_every == 0:
             for i, run in enumerate(runs):
                 run.metrics.append(pending[i])
                 pending[i] = []
@@ -305,7 +314,7 @@ def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, th
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(total=probe_steps, disable=not show, desc=f"lr-search x{len(cfgs)}", unit="step")
 
-    def callback(step: int, metrics: dict, seconds: float) -> None:
+    def callback(step: int, metrics: dict, seconds: float, states: TrainState) -> None:
         for i in range(len(cfgs)):
             if not metrics["alive_before"][i]:
                 continue
