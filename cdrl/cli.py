@@ -54,7 +54,7 @@ def _cmd_train(args) -> int:
             summary = train_run(None, args.resume, resume=True, overrides=options)
         else:
             summary = train_run(RunConfig(**options), args.run_dir)
-    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl train: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(summary))
@@ -68,7 +68,7 @@ def _cmd_sweep(args) -> int:
     grid = {name: tuple(getattr(args, name)) for name in GRID_FIELDS if hasattr(args, name)}
     try:
         rows = sweep_run(RunConfig(**_options(args, skip=GRID_FIELDS)), Grid(**grid), args.run_dir)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl sweep: {exc}", file=sys.stderr)
         return 2
     plot_sweep(args.run_dir)
@@ -150,7 +150,7 @@ def _cmd_collect(args) -> int:
     try:
         store.collect(Path(args.out), args.episodes, policy=args.policy, seed=args.seed,
                         max_steps=args.episode_steps, obs_size=args.obs_size)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
         return 2
     print(args.out)

@@ -12,6 +12,7 @@ import pytest
 
 from cdrl.data import store as ds
 from cdrl.data.episode import Episode
+from cdrl.data.lock import LOCK_NAME
 from cdrl.data.store import DatasetError, EpisodeDataset, collect, record_gym, split_episodes
 from envs import fastrng
 from envs.policies import get_policy
@@ -131,7 +132,7 @@ def test_interrupted_write_leaves_no_partial_episode(tmp_path, monkeypatch):
     monkeypatch.setattr(ds, "_write_npz", dies_mid_write)
     with pytest.raises(KeyboardInterrupt):
         small_collect(tmp_path)
-    names = sorted(p.name for p in tmp_path.iterdir())
+    names = sorted(p.name for p in tmp_path.iterdir() if p.name != LOCK_NAME)  # the lock file stays
     assert names == ["episode_000000.npz", "episode_000001.npz", "manifest.json"]
     for name in names[:2]:
         ds.load_episode(tmp_path / name)

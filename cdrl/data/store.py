@@ -14,7 +14,9 @@ temporary file in the same directory (name starting with ``.tmp-``), flushed and
 fsync-ed, then renamed over the final name.  An interrupted collection therefore
 leaves only whole episodes (plus possibly a ``.tmp-`` file, which readers ignore and
 the next collection removes); running :func:`collect` again on the same directory
-resumes it, skipping the episodes already present.
+resumes it, skipping the episodes already present.  A collection holds the directory's
+lock (:mod:`cdrl.data.lock`) while it writes, so a second one is refused with the first's
+pid; reading a complete data set takes no lock.
 
 The split is by episode: ``round(test_fraction * num_episodes)`` episodes, chosen by a
 permutation seeded from the collection seed, are the test split; the rest train.
@@ -35,6 +37,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from cdrl.data.episode import Episode  # noqa: F401  (re-exported: the unit a data set stores)
+from cdrl.data.lock import DirLock
 
 MANIFEST_NAME = "manifest.json"
 FORMAT_NAME = "cdrl-episodes"
@@ -96,9 +99,20 @@ def _write_npz(f, episode: Episode, compress: bool) -> None:
                 np.lib.format.write_array(member, getattr(episode, name), allow_pickle=False)
 
 
+class DatasetWriteError(DatasetError):
+    """An episode file or manifest could not be written (e.g. the disk is full); the file
+    it would have replaced, and every other file, is as it was."""
+
+
 def save_episode(path: str | os.PathLike, episode: Episode, compress: bool = True) -> None:
-    """Writes one episode as an ``.npz`` file, atomically."""
-    atomic_write(path, lambda f: _write_npz(f, episode, compress))
+    """Writes one episode as an ``.npz`` file, atomically; a failed write raises
+    :class:`DatasetWriteError` naming the file and leaves nothing behind."""
+    try:
+        atomic_write(path, lambda f: _write_npz(f, episode, compress))
+    except OSError as e:
+        raise DatasetWriteError(
+            f"could not write episode file {path}: {e.strerror or e}; the episodes written before it are "
+            "intact, and running the same collection again resumes it") from e
 
 
 def load_episode(path: str | os.PathLike) -> Episode:
@@ -149,15 +163,33 @@ def _read_manifest(out_dir: Path) -> dict | None:
 
 def _write_manifest(out_dir: Path, manifest: dict) -> None:
     text = json.dumps(manifest, indent=1, sort_keys=True).encode()
-    atomic_write(out_dir / MANIFEST_NAME, lambda f: f.write(text))
+    try:
+        atomic_write(out_dir / MANIFEST_NAME, lambda f: f.write(text))
+    except OSError as e:
+        raise DatasetWriteError(f"could not write {out_dir / MANIFEST_NAME}: {e.strerror or e}; "
+                                "the previous manifest is intact") from e
 
 
 class _Writer:
-    """Creates or resumes a data set directory for one collection ``config``."""
+    """Creates or resumes a data set directory for one collection ``config``, holding the
+    directory's lock until :meth:`close` (use it as a context manager)."""
 
     def __init__(self, out_dir: str | os.PathLike, config: dict):
         self.dir = Path(out_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.lock = DirLock(self.dir, "data set").acquire()
+        try:
+            self._open(config)
+        except BaseException:
+            self.lock.release()
+            raise
+
+    def __enter__(self) -> "_Writer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.lock.release()
+
+    def _open(self, config: dict) -> None:
         self.config = json.loads(json.dumps(config))
         existing = _read_manifest(self.dir)
         known: dict[int, int] = {}
@@ -178,18 +210,7 @@ class _Writer:
         self._save_manifest()
 
     def _check_same(self, old: dict) -> None:
-        if "env_params" in old and "env_params" in self.config:
-            # A game parameter added after the data set was collected had its default value.
-            from envs.slither import SlitherParams
-
-            defaults = _params_dict(SlitherParams())
-            old = {**old, "env_params": {**{k: v for k, v in defaults.items() if k not in old["env_params"]},
-                                         **old["env_params"]}}
-        diffs = [
-            f"{key}: existing {old.get(key)!r} != requested {self.config.get(key)!r}"
-            for key in sorted(set(old) | set(self.config))
-            if old.get(key) != self.config.get(key)
-        ]
+        diffs = _config_diffs(old, self.config)
         if diffs:
             raise DatasetError(
                 f"{self.dir / MANIFEST_NAME} was written by a different collection; "
@@ -229,6 +250,33 @@ class _Writer:
     def flush(self) -> None:
         """Rewrites the manifest to list every episode written so far."""
         self._save_manifest()
+
+
+def _config_diffs(old: dict, new: dict) -> list[str]:
+    """How collection config ``new`` differs from the ``old`` one of an existing data set."""
+    if "env_params" in old and "env_params" in new:
+        # A game parameter added after the data set was collected had its default value.
+        from envs.slither import SlitherParams
+
+        defaults = _params_dict(SlitherParams())
+        old = {**old, "env_params": {**{k: v for k, v in defaults.items() if k not in old["env_params"]},
+                                     **old["env_params"]}}
+    return [
+        f"{key}: existing {old.get(key)!r} != requested {new.get(key)!r}"
+        for key in sorted(set(old) | set(new))
+        if old.get(key) != new.get(key)
+    ]
+
+
+def _finished(out_dir: Path, config: dict) -> dict | None:
+    """The manifest of ``out_dir`` if it holds a complete data set of ``config`` (checked
+    without the lock and without writing anything, so readers can use it)."""
+    manifest = _read_manifest(out_dir) if (out_dir / MANIFEST_NAME).exists() else None
+    if manifest is None or not manifest.get("complete"):
+        return None
+    if _config_diffs(manifest.get("config", {}), json.loads(json.dumps(config))):
+        return None
+    return manifest
 
 
 def _params_dict(params) -> dict[str, float | int]:
@@ -336,12 +384,9 @@ def collect(
       The manifest (as written to ``out_dir/manifest.json``).
     Raises:
       DatasetError: the directory holds a data set collected with other settings, or
-        an episode file in it is corrupt.
+        an episode file in it is corrupt, or one could not be written (a full disk).
+      LockedError: another process is writing to the directory.
     """
-    import jax
-    from tqdm.auto import tqdm
-
-    from envs import fastrng
     from envs.policies import get_policy
     from envs.slither import SlitherParams, canonical_params
 
@@ -363,11 +408,25 @@ def collect(
         "num_episodes": int(num_episodes),
         "obs_size": int(obs_size),
     }
-    writer = _Writer(out_dir, config)
-    missing = writer.missing
-    if not missing:
+    done = _finished(Path(out_dir), config)
+    if done is not None:
+        return done
+    with _Writer(out_dir, config) as writer:
+        if writer.missing:
+            _simulate(writer, params, game_kwargs, policy, int(seed), int(max_steps), int(batch_size),
+                      int(chunk_steps), int(obs_size), compress, progress)
         return _read_manifest(writer.dir)
 
+
+def _simulate(writer: _Writer, params, game_kwargs: dict, policy: str, seed: int, max_steps: int, batch_size: int,
+              chunk_steps: int, obs_size: int, compress: bool, progress: bool | None) -> None:
+    """Runs and writes the episodes ``writer`` is missing (the body of :func:`collect`)."""
+    import jax
+    from tqdm.auto import tqdm
+
+    from envs import fastrng
+
+    missing = writer.missing
     start, run = _rollout_fn(tuple(game_kwargs.items()), policy, int(chunk_steps), int(obs_size))
     base = jax.random.PRNGKey(int(seed))
     episode_keys = jax.jit(jax.vmap(lambda i: fastrng.fold_in(base, i)))
@@ -409,7 +468,6 @@ def collect(
         pending.result()
         writer.flush()
     bar.close()
-    return _read_manifest(writer.dir)
 
 
 def record_gym(
@@ -423,6 +481,7 @@ def record_gym(
     test_fraction: float = 0.1,
     action_fn: Callable[[np.ndarray], Any] | None = None,
     compress: bool = True,
+    config_extra: dict | None = None,
 ) -> dict:
     """Records episodes of any gymnasium environment with image observations.
 
@@ -446,11 +505,11 @@ def record_gym(
       action_fn: maps the recorded action to what ``env.step`` takes (default:
         the action itself).
       compress: write compressed ``.npz`` files.
+      config_extra: more of what defines the recording (the environment's options,
+        the observation mode), stored in the manifest's config and checked on resume.
     Returns:
       The manifest.
     """
-    from envs.preprocess import preprocess
-
     kwargs = dict(preprocess_kwargs or {})
     spec = getattr(env, "spec", None)
     config = {
@@ -462,8 +521,20 @@ def record_gym(
         "max_steps": None if max_steps is None else int(max_steps),
         "test_fraction": float(test_fraction),
         "num_episodes": int(num_episodes),
+        **(config_extra or {}),
     }
-    writer = _Writer(out_dir, config)
+    done = _finished(Path(out_dir), config)
+    if done is not None:
+        return done
+    with _Writer(out_dir, config) as writer:
+        _record(writer, env, policy_fn, kwargs, int(seed), max_steps, action_fn, compress)
+        return _read_manifest(writer.dir)
+
+
+def _record(writer: _Writer, env, policy_fn, kwargs: dict, seed: int, max_steps: int | None, action_fn,
+            compress: bool) -> None:
+    """Plays and writes the episodes ``writer`` is missing (the body of :func:`record_gym`)."""
+    from envs.preprocess import preprocess
 
     def to_frame(obs) -> np.ndarray:
         obs = np.asarray(obs)
@@ -499,7 +570,6 @@ def record_gym(
         )
         writer.write(index, episode, compress)
         writer.flush()
-    return _read_manifest(writer.dir)
 
 
 class EpisodeDataset:

@@ -5,9 +5,13 @@
     eval.jsonl        held-out evaluations (or policy comparisons for controller runs)
     checkpoints/      orbax checkpoints (`cdrl.runs.checkpoint`)
     plots/            figures written by `cdrl plot`
+    tb/               TensorBoard event files (`cdrl.runs.tboard`)
+    .lock             the writer's lock (`cdrl.data.lock`): its pid while it runs
 
 Offline runs, online runs and every configuration of a sweep use `RunDir`; readers
-(`cdrl eval`, `cdrl plot`, `cdrl.analysis.report`) read through it too.
+(`cdrl eval`, `cdrl plot`, `cdrl.analysis.report`) read through it too. A writer holds
+`RunDir.lock()` for as long as it writes; readers never take it and read only complete
+records (`RunLog.read`).
 """
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cdrl.data.lock import DirLock
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
 from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
 
@@ -106,9 +111,15 @@ class RunDir:
         self.evals = RunLog(self.path / "eval.jsonl")
         self.checkpoint_dir = self.path / "checkpoints"
         self.plots_dir = self.path / "plots"
+        self.tb_dir = self.path / "tb"
 
     def __repr__(self) -> str:
         return f"RunDir({str(self.path)!r})"
+
+    def lock(self) -> DirLock:
+        """The one-writer lock of this directory (not yet acquired: use `with run.lock():`);
+        a second writer gets `cdrl.data.lock.LockedError` naming the holder's pid."""
+        return DirLock(self.path, "run directory")
 
     def has_run(self) -> bool:
         return self.config_path.is_file()

@@ -16,6 +16,7 @@ budget, with every candidate probed in parallel.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import itertools
@@ -176,11 +177,19 @@ def _streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], Sequ
 def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool | None = None) -> list[dict]:
     """Train every configuration of `grid` (the other options from `base`) as one vmapped
     program; write a run directory per configuration and the grid's table and curves.
-    Returns one row per configuration (see `results.json`)."""
+    Returns one row per configuration (see `results.json`). The sweep directory and every
+    configuration's directory are locked while it runs (`RunDir.lock`)."""
     run_dir = Path(run_dir)
     if (run_dir / "results.json").exists() or (run_dir / "sweep.json").exists():
         raise FileExistsError(f"{run_dir} already holds a sweep; pick another --run-dir")
     _check_grid(make_variant(base.variant, base.arch))
+    with contextlib.ExitStack() as locks:
+        for path in [run_dir] + [run_dir / grid.name(c) for c in grid.configs(base)]:
+            locks.enter_context(RunDir(path).lock())
+        return _sweep_run(base, grid, run_dir, progress)
+
+
+def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None) -> list[dict]:
     cfgs = grid.configs(base)
     cache = run_dir.parent / "data-cache"
     episodes = {c.seed: load_episodes(c, cache) for c in cfgs}

@@ -16,9 +16,12 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
               progress: bool | None = None) -> dict:
     """Train (or resume: the saved config, with `overrides` of the resumable options) the run
     in `run_dir`; returns a summary dict. A diverging run raises a `RuntimeError` naming the
-    step and the parameter group, after saving the last good state."""
+    step and the parameter group, after saving the last good state. The run directory is
+    locked for the whole run: a second writer gets `LockedError` naming this process's pid."""
     run = RunDir(run_dir)
-    cfg = run.config_for(cfg, resume, overrides)
-    run.path.mkdir(parents=True, exist_ok=True)
-    launch = online_train_run if make_variant(cfg.variant, cfg.arch).has_controller else offline_train_run
-    return launch(cfg, run, resume, progress)
+    if resume:
+        run.config_for(cfg, resume, overrides)  # a missing run is an error before anything is created
+    with run.lock():
+        cfg = run.config_for(cfg, resume, overrides)
+        launch = online_train_run if make_variant(cfg.variant, cfg.arch).has_controller else offline_train_run
+        return launch(cfg, run, resume, progress)
