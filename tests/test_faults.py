@@ -137,3 +137,140 @@ def test_a_collection_locks_its_data_set(tmp_path):
     with pytest.raises(LockedError, match=rf"data set {out} is in use by pid {proc.pid}"):
         store.collect(out, 400, max_steps=30, obs_size=16)
     _kill(proc)
+
+
+# ---- data checked before training
+
+def _episodes(n: int, length: int = 30, size: int = 16, action_dim: int = 3, seed: int = 0):
+    import numpy as np
+
+    from cdrl.data.episode import Episode
+
+    rng = np.random.default_rng(seed)
+    return [Episode(frames=rng.integers(0, 256, (length + i, size, size), dtype=np.uint8),
+                    actions=rng.uniform(0, 1, (length + i, action_dim)).astype(np.float32),
+                    rewards=rng.normal(size=length + i).astype(np.float32)) for i in range(n)]
+
+
+def _dataset(path: Path, n: int = 8, **kwargs) -> Path:
+    from cdrl.data.store import save_dataset
+
+    save_dataset(path, _episodes(n, **kwargs), test_fraction=0.25)
+    return path
+
+
+def _member_data(path: Path, name: str) -> tuple[int, int]:
+    """(offset, size) of member `name`'s stored bytes inside the zip `path`."""
+    import struct
+    import zipfile
+
+    with open(path, "rb") as f, zipfile.ZipFile(f) as z:
+        info = z.getinfo(name)
+        f.seek(info.header_offset + 26)
+        n, m = struct.unpack("<HH", f.read(4))
+        return info.header_offset + 30 + n + m, info.compress_size
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _flip_frame_byte(path: Path) -> None:
+    offset, size = _member_data(path, "frames.npy")
+    data = bytearray(path.read_bytes())
+    data[offset + size // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def _rewrite(path: Path, **arrays) -> None:
+    import numpy as np
+
+    with np.load(path) as old:
+        new = {k: old[k] for k in old.files}
+    new.update(arrays)
+    new = {k: v for k, v in new.items() if v is not None}
+    with open(path, "wb") as f:
+        np.savez(f, **new)
+
+
+def _shorter(path):
+    import numpy as np
+
+    with np.load(path) as d:
+        _rewrite(path, frames=d["frames"][:-1], actions=d["actions"][:-1], rewards=d["rewards"][:-1])
+
+
+def _bigger_frames(path):
+    import numpy as np
+
+    with np.load(path) as d:
+        _rewrite(path, frames=np.zeros((len(d["frames"]), 8, 8), np.uint8))
+
+
+def _more_actions(path):
+    import numpy as np
+
+    with np.load(path) as d:
+        _rewrite(path, actions=np.zeros((len(d["actions"]), 4), np.float32))
+
+
+def _actions_out_of_range(path):
+    import numpy as np
+
+    with np.load(path) as d:
+        _rewrite(path, actions=d["actions"] + 1.5)
+
+
+def _float64_rewards(path):
+    import numpy as np
+
+    with np.load(path) as d:
+        _rewrite(path, rewards=d["rewards"].astype(np.float64))
+
+
+BAD_FILES = {
+    "truncated": (_truncate, "is truncated or corrupt"),
+    "flipped byte in the frames": (_flip_frame_byte, "is truncated or corrupt"),
+    "not a zip": (lambda p: p.write_bytes(b"hello"), "is truncated or corrupt"),
+    "missing": (lambda p: p.unlink(), "is missing"),
+    "no rewards": (lambda p: _rewrite(p, rewards=None), r"lacks arrays \['rewards'\]"),
+    "fewer frames than the manifest": (_shorter, "the manifest says 31 frames"),
+    "other frame size": (_bigger_frames, "frames are 8x8, the manifest says 16x16"),
+    "more action values": (_more_actions, "actions have 4 values, the manifest says 3"),
+    "actions out of [0, 1]": (_actions_out_of_range, r"actions are not finite values in \[0, 1\]"),
+    "float64 rewards": (_float64_rewards, r"rewards are float64 \(31,\), expected float32"),
+}
+
+
+@pytest.mark.parametrize("kind", BAD_FILES)
+def test_verify_names_a_bad_episode_file(tmp_path, kind):
+    from cdrl.data.store import DatasetError, EpisodeDataset
+
+    data = _dataset(tmp_path / "data")
+    EpisodeDataset(data, "all").verify()  # intact
+    bad = data / "episode_000001.npz"
+    damage, message = BAD_FILES[kind]
+    damage(bad)
+    with pytest.raises(DatasetError, match=rf"episode file {bad} .*{message}"):
+        EpisodeDataset(data, "all").verify()
+
+
+def test_a_bad_episode_file_fails_the_run_before_step_1(tmp_path, capsys):
+    from cdrl.data.store import EpisodeDataset
+
+    data = _dataset(tmp_path / "data", n=8)
+    bad = data / EpisodeDataset(data, "test")._entries[-1]["file"]  # a held-out file: training would reach it late
+    _flip_frame_byte(bad)
+    for command in (["train", "--run-dir", str(tmp_path / "run")], ["sweep", "--run-dir", str(tmp_path / "sweep")]):
+        capsys.readouterr()
+        assert cli_main([*command, "--data", str(data), "--preset", "tiny", "--unroll", "4", "--batch", "2",
+                         "--steps", "3"]) == 2
+        assert f"episode file {bad} is truncated or corrupt" in capsys.readouterr().err
+    assert not (tmp_path / "run" / "config.json").exists() and not (tmp_path / "run" / "metrics.jsonl").exists()
+    assert not (tmp_path / "sweep" / "sweep.json").exists()
+
+
+def test_the_data_set_must_match_the_preset(tmp_path, capsys):
+    data = _dataset(tmp_path / "data", size=8)
+    assert cli_main(["train", "--run-dir", str(tmp_path / "run"), "--data", str(data), "--preset", "tiny"]) == 2
+    assert f"data set {data} holds 8x8 frames; preset 'tiny' takes 16x16" in capsys.readouterr().err

@@ -30,9 +30,10 @@ import json
 import os
 import tempfile
 import zipfile
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -255,12 +256,13 @@ class _Writer:
 def _config_diffs(old: dict, new: dict) -> list[str]:
     """How collection config ``new`` differs from the ``old`` one of an existing data set."""
     if "env_params" in old and "env_params" in new:
-        # A game parameter added after the data set was collected had its default value.
+        # A game parameter added after the data set was collected had its default value; one
+        # the game no longer has (a removed test-only reward) is not compared.
         from envs.slither import SlitherParams
 
         defaults = _params_dict(SlitherParams())
-        old = {**old, "env_params": {**{k: v for k, v in defaults.items() if k not in old["env_params"]},
-                                     **old["env_params"]}}
+        kept = {k: v for k, v in old["env_params"].items() if k in defaults}
+        old = {**old, "env_params": {**defaults, **kept}}
     return [
         f"{key}: existing {old.get(key)!r} != requested {new.get(key)!r}"
         for key in sorted(set(old) | set(new))
@@ -470,6 +472,19 @@ def _simulate(writer: _Writer, params, game_kwargs: dict, policy: str, seed: int
     bar.close()
 
 
+def save_dataset(out_dir: str | os.PathLike, episodes: Sequence[Episode], source: str = "episodes",
+                 seed: int = 0, test_fraction: float = 0.1, compress: bool = True) -> dict:
+    """Writes ``episodes`` (recorded elsewhere) as a data set directory, split by ``seed``
+    like a collection; returns the manifest.  Resumes like :func:`collect`."""
+    config = {"source": str(source), "seed": int(seed), "test_fraction": float(test_fraction),
+              "num_episodes": len(episodes)}
+    with _Writer(out_dir, config) as writer:
+        for index in writer.missing:
+            writer.write(index, episodes[index], compress)
+        writer.flush()
+        return _read_manifest(writer.dir)
+
+
 def record_gym(
     env,
     out_dir: str | os.PathLike,
@@ -635,8 +650,86 @@ class EpisodeDataset:
         """Whether the collection that wrote the directory finished."""
         return bool(self.manifest.get("complete", False))
 
-    def verify(self) -> None:
-        """Loads every episode of the split; raises :class:`DatasetError` on the first
-        bad file."""
-        for _ in self:
-            pass
+    def verify(self, workers: int | None = None) -> None:
+        """Checks every episode file of the split without building episodes: each is a
+        readable zip whose members pass their CRC check (a truncated or corrupted file
+        fails), holds ``frames`` [N, H, W], ``actions`` [N, A] float32 in [0, 1] and
+        ``rewards`` [N] float32 (finite), with N, (H, W), the frame dtype and A as the
+        manifest says.  Files are checked in ``workers`` threads (default: up to 8).
+        Raises :class:`DatasetError` naming the first bad file."""
+        data = self.manifest.get("data", {})
+        expect = {
+            "frame_shape": tuple(data["frame_shape"]) if "frame_shape" in data else None,
+            "frame_dtype": data.get("frame_dtype"),
+            "action_dim": data.get("action_dim"),
+        }
+        jobs = [(self.path / e["file"], int(e["length"])) for e in self._entries]
+        if not jobs:
+            return
+        with ThreadPoolExecutor(max_workers=workers or min(8, len(jobs), os.cpu_count() or 1)) as pool:
+            for error in pool.map(lambda job: _check_episode_file(*job, **expect), jobs):
+                if error is not None:
+                    raise DatasetError(error)
+
+
+_READ_BLOCK = 1 << 22
+
+
+def _npy_header(member) -> tuple[tuple[int, ...], np.dtype]:
+    version = np.lib.format.read_magic(member)
+    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    if version not in read:
+        raise ValueError(f"unsupported .npy version {version}")
+    shape, fortran, dtype = read[version](member)
+    if fortran:
+        raise ValueError("Fortran-ordered arrays are not written by cdrl")
+    return shape, dtype
+
+
+def _check_episode_file(path: Path, length: int, frame_shape: tuple | None, frame_dtype: str | None,
+                        action_dim: int | None) -> str | None:
+    """What is wrong with episode file ``path`` (None: nothing); see :meth:`EpisodeDataset.verify`."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = set(z.namelist())
+            missing = {"frames.npy", "actions.npy", "rewards.npy"} - names
+            if missing:
+                return f"episode file {path} lacks arrays {sorted(m[:-4] for m in missing)}"
+            with z.open("frames.npy") as member:
+                shape, dtype = _npy_header(member)
+                while member.read(_READ_BLOCK):  # decompress all of it: the CRC is checked at the end
+                    pass
+            arrays = {}
+            for name in ("actions", "rewards"):
+                with z.open(f"{name}.npy") as member:
+                    arrays[name] = np.lib.format.read_array(member, allow_pickle=False)
+    except FileNotFoundError:
+        return f"episode file {path} is missing"
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, zlib.error) as e:
+        return f"episode file {path} is truncated or corrupt: {e}"
+    actions, rewards = arrays["actions"], arrays["rewards"]
+    problems = []
+    if len(shape) != 3 or shape[0] != length:
+        problems.append(f"frames have shape {shape}, the manifest says {length} frames")
+    elif frame_shape is not None and tuple(shape[1:]) != frame_shape:
+        problems.append(f"frames are {shape[1]}x{shape[2]}, the manifest says {frame_shape[0]}x{frame_shape[1]}")
+    if frame_dtype is not None and str(dtype) != frame_dtype:
+        problems.append(f"frames are {dtype}, the manifest says {frame_dtype}")
+    elif str(dtype) not in ("uint8", "float32"):
+        problems.append(f"frames are {dtype}, not uint8 or float32")
+    if actions.dtype != np.float32 or actions.ndim != 2 or actions.shape[0] != length:
+        problems.append(f"actions are {actions.dtype} {actions.shape}, expected float32 [{length}, A]")
+    elif action_dim is not None and actions.shape[1] != action_dim:
+        problems.append(f"actions have {actions.shape[1]} values, the manifest says {action_dim}")
+    elif not (np.all(np.isfinite(actions)) and actions.min(initial=0.0) >= 0.0 and actions.max(initial=0.0) <= 1.0):
+        problems.append("actions are not finite values in [0, 1]")
+    if rewards.dtype != np.float32 or rewards.shape != (length,):
+        problems.append(f"rewards are {rewards.dtype} {rewards.shape}, expected float32 [{length}]")
+    elif not np.all(np.isfinite(rewards)):
+        problems.append("rewards are not finite")
+    if str(dtype) == "float32" and not problems:
+        try:
+            Episode(**dict(np.load(path, allow_pickle=False)))  # float frames: check their range too
+        except ValueError as e:
+            problems.append(str(e))
+    return f"episode file {path} is invalid: " + "; ".join(problems) if problems else None

@@ -20,7 +20,7 @@ from cdrl.evaluation.metrics import evaluate
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
-from cdrl.runs.sources import load_episodes, with_obs_norm
+from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
 from cdrl.training.loop import divergence_message, enter_stage, stage_schedule
 from cdrl.training.step import init_state, ratio_names, train_step
 
@@ -41,6 +41,7 @@ def step_record(step: int, metrics: dict, names: list[str], fps: float) -> dict:
 def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
     cache = run.path.parent / "data-cache"
     train_eps, test_eps = load_episodes(cfg, cache)
+    verify_data(cfg, train_eps, test_eps)
     if not resume:
         cfg = with_obs_norm(cfg, cache)
     variant = make_variant(cfg.variant, cfg.arch)

@@ -64,6 +64,23 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
 
 
+def verify_data(cfg: RunConfig, train, test) -> None:
+    """Check, before the first step, every episode file of the splits a run uses when its
+    data is a data set directory (the built-in game's cached data included): readable,
+    CRCs intact, shapes, dtypes and lengths as the manifest says, frames of the preset's
+    size. Raises `store.DatasetError` naming the first bad file."""
+    size = cfg.arch.image_size
+    for split in (train, test):
+        if not isinstance(split, store.EpisodeDataset):
+            continue
+        shape = split.manifest.get("data", {}).get("frame_shape")
+        if shape is not None and tuple(shape) != (size, size):
+            raise store.DatasetError(
+                f"data set {split.path} holds {shape[0]}x{shape[1]} frames; preset {cfg.preset!r} takes "
+                f"{size}x{size} (record the data at that size, or pick the preset that matches it)")
+        split.verify()
+
+
 def frame_stats(episodes: Sequence[Episode], max_episodes: int = 16) -> tuple[float, float]:
     """Mean and standard deviation of the pixels of the first `max_episodes` episodes, as
     brightness in [0, 1]."""

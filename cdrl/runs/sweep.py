@@ -39,7 +39,7 @@ from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.offline import step_record
 from cdrl.runs.rundir import RunDir, atomic_write_text
-from cdrl.runs.sources import load_episodes, with_obs_norm
+from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
 from cdrl.training.loop import enter_stage, stage_schedule
 from cdrl.training.monitor import group_names
 from cdrl.training.optim import HParams, init_opt_state
@@ -193,6 +193,8 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
     cfgs = grid.configs(base)
     cache = run_dir.parent / "data-cache"
     episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
+    for train_eps, test_eps in episodes.values():
+        verify_data(base, train_eps, test_eps)
     base = with_obs_norm(base, cache)  # the same statistics for every seed: one architecture
     cfgs = grid.configs(base)
     variant = make_variant(base.variant, base.arch)
