@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from cdrl.data.stream import ChunkStream
@@ -82,7 +83,7 @@ class _Cdrl:
     def __init__(self, cfg: RunConfig, variant, params):
         self.variant, self.hp = variant, cfg.hparams(variant)
         self.state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, self.hp)
-        self.state = self.state.replace(params=params)
+        self.state = self.state.replace(params=jax.tree.map(jnp.array, params))  # copied: the step donates
 
     def step(self, chunk) -> float:
         self.state, metrics = train_step(self.variant, self.state, self.hp, chunk)

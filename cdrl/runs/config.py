@@ -27,8 +27,8 @@ RECIPES: dict[str, dict[str, object]] = {
         "fc_init_gain": 1.0,
     },
     "fast": {
-        "optimizer": "sgd", "lr": 1.0, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.0,
-        "lr_schedule": "constant", "lr_warmup": 0, "batch": 4, "unroll": 32, "obs_norm": "data",
+        "optimizer": "sgd", "lr": 2.0, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.0,
+        "lr_schedule": "constant", "lr_warmup": 0, "batch": 4, "unroll": 8, "obs_norm": "data",
         "fc_init_gain": 5.0,
     },
 }
