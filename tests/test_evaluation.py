@@ -7,7 +7,8 @@ import pytest
 
 from cdrl.data.episode import Episode
 from cdrl.data.synthetic import synthetic_episodes
-from cdrl.evaluation.metrics import COPY_EPS, evaluate, excess_ratio
+from cdrl.data.frames import COPY_EPS
+from cdrl.evaluation.metrics import evaluate, excess_ratio
 from cdrl.models import TINY, StepInput, make_variant
 
 

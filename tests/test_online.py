@@ -115,6 +115,18 @@ def test_online_scan_equals_a_python_loop(game):
     np.testing.assert_allclose(metrics["terms"]["pred_reward"], pred_loop, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(new_state.obs, c[2], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(metrics["reward"], jnp.mean(stack(stats_loop)["reward"]), rtol=1e-6)
+    # The copy-last baseline and the floor on the chunk's own frames (o_t -> o_{t+1}).
+    prev = np.clip(np.asarray(stack(outs)["obs"], np.float64), 0.01, 0.99)
+    nxt = np.asarray(stack(outs)["target"], np.float64)
+    copy = np.mean(-(nxt * np.log(prev) + (1 - nxt) * np.log(1 - prev)))
+    p = np.clip(nxt, 1e-7, 1 - 1e-7)
+    np.testing.assert_allclose(metrics["terms"]["copy_bce"], copy, rtol=1e-4)
+    np.testing.assert_allclose(metrics["terms"]["target_entropy"], np.mean(-(p * np.log(p) + (1 - p) * np.log(1 - p))),
+                               rtol=1e-4)
+    # ...and the target of a step is the frame the next step sees, unless an episode ended there.
+    np.testing.assert_allclose(nxt[:-1][~np.asarray(stack(stats_loop)["done"])[:-1]],
+                               np.asarray(stack(outs)["obs"])[1:][~np.asarray(stack(stats_loop)["done"])[:-1]],
+                               atol=1e-6)
 
 
 def test_offline_variants_are_refused_online(game):

@@ -17,19 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from cdrl.data.episode import Episode
-from cdrl.data.frames import as_float
+from cdrl.data.frames import as_float, copy_last_bce, pixel_bce, target_entropy
 from cdrl.data.stream import Chunk
 from cdrl.models.base import Variant
 from cdrl.training.step import step_inputs
-
-# The copy-last-frame baseline predicts clip(o_t, COPY_EPS, 1 - COPY_EPS): a hard 0/1 copy
-# would have an infinite BCE wherever a pixel flips.
-COPY_EPS = 0.01
-
-
-def _pixel_bce(logits, target):
-    return jnp.mean(jax.nn.softplus(logits) - target * logits, axis=(-2, -1))
-
 
 @functools.partial(jax.jit, static_argnums=0)
 def eval_chunk_stats(variant: Variant, params, carry, chunk: Chunk):
@@ -37,13 +28,10 @@ def eval_chunk_stats(variant: Variant, params, carry, chunk: Chunk):
     xs = step_inputs(chunk)
     carry, outs = variant.unroll(params, carry, xs)
     target = as_float(chunk.next_obs)
-    copy = jnp.clip(xs.obs, COPY_EPS, 1 - COPY_EPS)
-    p = jnp.clip(target, 1e-7, 1 - 1e-7)
     stats = {
-        "bce": _pixel_bce(outs["logits"], target),
-        # The floor of any prediction's BCE: the targets' own entropy (BCE - entropy = KL >= 0).
-        "target_entropy": jnp.mean(-(p * jnp.log(p) + (1 - p) * jnp.log1p(-p)), axis=(-2, -1)),
-        "copy_bce": _pixel_bce(jnp.log(copy) - jnp.log1p(-copy), target),
+        "bce": pixel_bce(outs["logits"], target),
+        "target_entropy": target_entropy(target),
+        "copy_bce": copy_last_bce(xs.obs, target),
     }
     if variant.shared_code_space:
         pred = outs["pred_code"][:-1]

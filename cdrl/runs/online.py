@@ -2,7 +2,9 @@
 for action_loop, reward_prediction and final_proposal).
 
 The run directory has the layout of offline runs; `metrics.jsonl` lines add the real and
-predicted reward, the finished episodes' returns and the exploration noise. Checkpoints hold
+predicted reward, the finished episodes' returns, the exploration noise, and the excess ratio
+of the chunk's next-frame predictions against copying the last frame (on the frames the
+model is about to learn from, so before the update). Checkpoints hold
 the whole `OnlineState` (games included), so a resumed run continues exactly.
 """
 from __future__ import annotations
@@ -16,6 +18,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from cdrl.evaluation.metrics import excess_ratio
 from cdrl.evaluation.play import controller_policy, format_table, play, summarize
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
@@ -77,8 +80,10 @@ def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool |
             bar.close()
             raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
         episodes = int(m["episodes"])
+        terms = {k: float(v) for k, v in m["terms"].items()}
         pending.append({
-            "step": step, "loss": float(m["loss"]), "terms": {k: float(v) for k, v in m["terms"].items()},
+            "step": step, "loss": float(m["loss"]), "terms": terms,
+            "excess_ratio": excess_ratio(terms["obs_bce"], terms["copy_bce"], terms["target_entropy"]),
             "reward": float(m["reward"]), "episodes": episodes,
             "mean_return": float(m["return_sum"]) / episodes if episodes else None,
             "action_mean": np.asarray(m["action_mean"]).tolist(), "noise_std": float(m["noise_std"]),

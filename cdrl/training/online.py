@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from cdrl.data.frames import resize_obs
+from cdrl.data.frames import copy_last_bce, resize_obs, target_entropy
 from cdrl.models.base import StepInput, Variant, bce_with_logits
 from cdrl.training.monitor import NormRatioState
 from cdrl.training.optim import OptHParams, init_opt_state, make_optimizer
@@ -135,7 +135,8 @@ def transition(variant: Variant, game, params, env_params, noise_std, c):
     ep_ret, ep_len = ep_ret + reward, ep_len + 1
     stats = {"reward": reward, "done": done, "finished_return": jnp.where(done, ep_ret, 0.0),
              "finished_length": jnp.where(done, ep_len, 0), "action": executed}
-    outs = {"logits": out["logits"], "target": nxt, "pred_reward": out.get("reward", jnp.zeros_like(reward))}
+    outs = {"logits": out["logits"], "obs": obs, "target": nxt,
+            "pred_reward": out.get("reward", jnp.zeros_like(reward))}
     c = (model_carry, env_state, jnp.where(done[:, None, None], fresh_obs, nxt),
          jnp.where(done[:, None], 0.0, out["action"]), done, key,
          jnp.where(done, 0.0, ep_ret), jnp.where(done, 0, ep_len))
@@ -148,8 +149,13 @@ def rollout_carry(state: OnlineState):
 
 
 def chunk_objective(variant: Variant, outs, stats, hp: OnlineHParams):
-    """(model loss, mean predicted reward, loss terms) of a chunk's outputs `[T, B, ...]`."""
-    terms = {"obs_bce": bce_with_logits(outs["logits"], outs["target"])}
+    """(model loss, mean predicted reward, loss terms) of a chunk's outputs `[T, B, ...]`.
+    Besides the weighted terms, `copy_bce` and `target_entropy` (weight 0) score copying the
+    last frame and the floor on the same frames, for the excess ratio of the predictions."""
+    target = jax.lax.stop_gradient(outs["target"])
+    terms = {"obs_bce": bce_with_logits(outs["logits"], target),
+             "copy_bce": jnp.mean(copy_last_bce(jax.lax.stop_gradient(outs["obs"]), target)),
+             "target_entropy": jnp.mean(target_entropy(target))}
     if getattr(variant, "predicts_reward", False):
         terms["reward_mse"] = jnp.mean(jnp.square(outs["pred_reward"] - stats["reward"]))
     model_loss = terms["obs_bce"] + hp.reward_weight * terms.get("reward_mse", 0.0)
