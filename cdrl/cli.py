@@ -63,17 +63,21 @@ def _cmd_train(args) -> int:
 
 def _cmd_sweep(args) -> int:
     from cdrl.analysis.plots import plot_sweep
-    from cdrl.runs.sweep import Grid, format_results, sweep_run
+    from cdrl.runs.sweep import Grid, format_results, resume_sweep, sweep_run
 
     grid = {name: tuple(getattr(args, name)) for name in GRID_FIELDS if hasattr(args, name)}
+    run_dir = args.resume or args.run_dir
     try:
-        rows = sweep_run(RunConfig(**_options(args, skip=GRID_FIELDS)), Grid(**grid), args.run_dir)
+        if args.resume:
+            rows = resume_sweep(args.resume, overrides=_options(args))
+        else:
+            rows = sweep_run(RunConfig(**_options(args, skip=GRID_FIELDS)), Grid(**grid), args.run_dir)
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl sweep: {exc}", file=sys.stderr)
         return 2
-    plot_sweep(args.run_dir)
+    plot_sweep(run_dir)
     print(format_results(rows))
-    print(json.dumps(json.loads((Path(args.run_dir) / "results.json").read_text())))
+    print(json.dumps(json.loads((Path(run_dir) / "results.json").read_text())))
     return 0
 
 
@@ -179,6 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sw = sub.add_parser("sweep", help="train a grid of configurations (any of --lr --momentum --b2 --weight-decay --grad-clip --lr-warmup --seed --diverge-threshold with several values) as one vmapped program")
     sw.add_argument("--run-dir", default="runs/sweep", help="directory of the sweep's runs and table (default: runs/sweep)")
+    sw.add_argument("--resume", metavar="SWEEP_DIR", default=None,
+                    help="continue the sweep in SWEEP_DIR from its last complete checkpoint; only --steps, "
+                         "--checkpoint-every, --keep-checkpoints, --eval-every, --eval-episodes may change (default: none)")
     _add_config_options(sw, several=GRID_FIELDS)
     sw.set_defaults(func=_cmd_sweep)
 

@@ -274,3 +274,282 @@ def test_the_data_set_must_match_the_preset(tmp_path, capsys):
     data = _dataset(tmp_path / "data", size=8)
     assert cli_main(["train", "--run-dir", str(tmp_path / "run"), "--data", str(data), "--preset", "tiny"]) == 2
     assert f"data set {data} holds 8x8 frames; preset 'tiny' takes 16x16" in capsys.readouterr().err
+
+
+# ---- SIGKILL during a sweep
+
+SWEEP_GRID = ["--lr", "0.3", "1e4", "--seed", "0", "1"]  # lr 1e4 diverges within a few steps: it must stay stopped
+
+
+def _progress_step(sweep: Path) -> int:
+    try:
+        return json.loads((sweep / "progress.json").read_text())["step"]
+    except (FileNotFoundError, json.JSONDecodeError):
+        return 0
+
+
+def test_sigkill_during_a_sweep_resumes_every_configuration_exactly(tmp_path, capsys):
+    straight = tmp_path / "straight"
+    assert cli_main(["sweep", "--run-dir", str(straight), *TINY_RUN, *SWEEP_GRID, "--steps", "40",
+                     "--checkpoint-every", "5"]) == 0
+    expected = {r["name"]: r for r in json.loads((straight / "results.json").read_text())["rows"]}
+    assert len(expected) == 4 and sum(r["diverged_at"] is not None for r in expected.values()) == 2
+
+    killed = tmp_path / "killed"
+    proc = _start("sweep", "--run-dir", str(killed), *TINY_RUN, *SWEEP_GRID, "--steps", "100000",
+                  "--checkpoint-every", "5")
+    _wait_for(proc, lambda: _progress_step(killed) >= 10, "two complete sweep checkpoints")
+    _kill(proc)
+    reached = _progress_step(killed)
+    assert 10 <= reached < 40, reached
+    before = {name: _records(killed / name / "metrics.jsonl")[:reached] for name in expected}
+    capsys.readouterr()
+    assert cli_main(["sweep", "--resume", str(killed), "--steps", "40"]) == 0
+    rows = {r["name"]: r for r in json.loads((killed / "results.json").read_text())["rows"]}
+    for name, row in expected.items():
+        a, b = _records(straight / name / "metrics.jsonl"), _records(killed / name / "metrics.jsonl")
+        assert [r["step"] for r in b] == [r["step"] for r in a]  # a diverged configuration stayed stopped
+        assert max(abs(x["loss"] - y["loss"]) for x, y in zip(a, b)) <= 1e-6
+        assert rows[name]["diverged_at"] == row["diverged_at"]
+        assert rows[name]["test_bce"] == pytest.approx(row["test_bce"], rel=1e-5)
+        # It went on from the checkpoint: the killed process's own records (frames/s, a
+        # wall-clock measurement, included) are kept as they were.
+        assert b[:reached] == before[name]
+
+
+# ---- checkpoints: SIGKILL mid-write, a full disk, a torn metrics line
+
+CKPT_RUN = [*TINY_RUN, "--checkpoint-every", "10"]
+
+
+@pytest.fixture(scope="module")
+def straight_run(tmp_path_factory) -> list[float]:
+    """The per-step losses of an uninterrupted 30-step run."""
+    run = tmp_path_factory.mktemp("straight") / "run"
+    assert cli_main(["train", "--run-dir", str(run), *CKPT_RUN, "--steps", "30"]) == 0
+    return [r["loss"] for r in _records(run / "metrics.jsonl")]
+
+
+def _resume_matches(run: Path, straight: list[float], capsys) -> None:
+    capsys.readouterr()
+    assert cli_main(["train", "--resume", str(run), "--steps", "30"]) == 0, capsys.readouterr().err
+    records = _records(run / "metrics.jsonl")
+    assert [r["step"] for r in records] == list(range(30))
+    assert max(abs(r["loss"] - x) for r, x in zip(records, straight)) <= 1e-6
+
+
+# Kills its own process when orbax is about to rename checkpoint <step>'s finished temporary
+# directory into place: the state and metadata are written, the checkpoint is not committed.
+_KILL_AT_COMMIT = """
+import os, signal, sys
+from pathlib import Path
+from orbax.checkpoint._src.path import async_path
+rename = async_path.rename
+async def killing_rename(src, dst):
+    if Path(dst).name == sys.argv[1]:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return await rename(src, dst)
+async_path.rename = killing_rename
+from cdrl.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_sigkill_during_a_checkpoint_write_restores_the_previous_one(tmp_path, straight_run, capsys):
+    run = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-c", _KILL_AT_COMMIT, "20", "train", "--run-dir", str(run), *CKPT_RUN,
+                           "--steps", "30"], capture_output=True, text=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert _finished_checkpoints(run / "checkpoints") == [10]
+    assert [p.name for p in (run / "checkpoints").glob("20.orbax-checkpoint-tmp*")], "the kill missed the write"
+    _resume_matches(run, straight_run, capsys)
+    assert _finished_checkpoints(run / "checkpoints") == [10, 20, 30]
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # orbax's threads after the failure
+def test_a_full_disk_during_a_checkpoint_fails_clearly_and_keeps_the_previous_one(tmp_path, straight_run, capsys,
+                                                                                   monkeypatch):
+    import errno
+
+    from orbax.checkpoint._src.handlers import json_checkpoint_handler as handler
+
+    real = handler.JsonCheckpointHandler._save_fn
+
+    async def full_disk(self, item, directory):
+        if "/20.orbax-checkpoint-tmp" in str(directory):
+            (directory / "metadata").write_text('{"step": 2')
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return await real(self, item, directory)
+
+    run = tmp_path / "run"
+    monkeypatch.setattr(handler.JsonCheckpointHandler, "_save_fn", full_disk)
+    capsys.readouterr()
+    assert cli_main(["train", "--run-dir", str(run), *CKPT_RUN, "--steps", "30"]) == 2
+    err = capsys.readouterr().err
+    assert f"could not write checkpoint {run / 'checkpoints' / '20'}: No space left on device" in err
+    assert "the earlier checkpoints are intact (steps: 10)" in err
+    assert _finished_checkpoints(run / "checkpoints") == [10]
+    monkeypatch.undo()
+    _resume_matches(run, straight_run, capsys)
+
+
+def test_a_torn_metrics_line_is_skipped_by_readers_and_repaired_by_resume(tmp_path, straight_run, capsys):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *CKPT_RUN, "--steps", "20"]) == 0
+    with open(run / "metrics.jsonl", "a") as f:
+        f.write('{"step": 20, "loss": 0.4')  # a write cut off by a kill
+    capsys.readouterr()
+    assert cli_main(["eval", str(run)]) == 0
+    assert cli_main(["plot", str(run), "--out", str(tmp_path / "plots")]) == 0
+    _resume_matches(run, straight_run, capsys)
+
+
+# ---- data sets: SIGKILL during a collection, a full disk during an episode write
+
+def _episode_files(out: Path) -> list[Path]:
+    return sorted(out.glob("episode_*.npz"))
+
+
+def test_sigkill_during_collect_keeps_whole_episodes_and_the_rerun_completes_the_set(tmp_path, capsys):
+    import numpy as np
+
+    from cdrl.data.store import EpisodeDataset, load_episode
+
+    args = ["--episodes", "200", "--episode-steps", "30", "--obs-size", "16", "--seed", "3"]
+    out = tmp_path / "killed"
+    proc = _start("collect", str(out), *args)
+    _wait_for(proc, lambda: len(_episode_files(out)) >= 20, "twenty finished episodes")
+    _kill(proc)
+    kept = _episode_files(out)
+    assert 20 <= len(kept) < 200, len(kept)
+    for path in kept:
+        load_episode(path)  # whole episodes only; a .tmp- file may be left, never a torn episode
+    assert not EpisodeDataset(out, "all").complete
+    assert cli_main(["collect", str(out), *args]) == 0
+    resumed = EpisodeDataset(out, "all")
+    assert resumed.complete and len(resumed) == 200 and not list(out.glob(".tmp-*"))
+    resumed.verify()
+    straight = tmp_path / "straight"
+    assert cli_main(["collect", str(straight), *args]) == 0
+    assert json.loads((straight / "manifest.json").read_text()) == json.loads((out / "manifest.json").read_text())
+    for i in (0, len(kept) - 1, len(kept), 199):  # before and after the kill
+        a, b = load_episode(_episode_files(out)[i]), load_episode(_episode_files(straight)[i])
+        assert np.array_equal(a.frames, b.frames) and np.array_equal(a.actions, b.actions)
+
+
+def test_a_full_disk_during_an_episode_write_fails_clearly_and_keeps_the_episodes_before(tmp_path, capsys,
+                                                                                         monkeypatch):
+    import errno
+
+    from cdrl.data import store
+
+    real, calls = store._write_npz, []
+
+    def full_disk(f, episode, compress):
+        calls.append(1)
+        if len(calls) == 20:
+            f.write(b"PK\x03\x04 part of an episode")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(f, episode, compress)
+
+    args = ["--episodes", "24", "--episode-steps", "20", "--obs-size", "16"]
+    out = tmp_path / "data"
+    monkeypatch.setattr(store, "_write_npz", full_disk)
+    capsys.readouterr()
+    assert cli_main(["collect", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert f"could not write episode file {out / 'episode_000019.npz'}: No space left on device" in err
+    assert [p.name for p in _episode_files(out)] == [f"episode_{i:06d}.npz" for i in range(19)]
+    assert not list(out.glob(".tmp-*"))
+    listed = store.EpisodeDataset(out, "all")
+    assert listed.indices == list(range(16))  # the manifest of the last whole batch
+    listed.verify()
+    monkeypatch.undo()
+    assert cli_main(["collect", str(out), *args]) == 0
+    assert store.EpisodeDataset(out, "all").complete
+
+
+# ---- bad input: each refused with a named error
+
+def _fake_sweep(root: Path) -> Path:
+    import dataclasses
+
+    from cdrl.runs.config import RunConfig
+
+    sweep = root / "sweep"
+    sweep.mkdir()
+    (sweep / "sweep.json").write_text(json.dumps({"base": dataclasses.asdict(RunConfig()), "grid": {}}))
+    return sweep
+
+
+BAD_CLI = {
+    "unknown variant": (lambda t: ["train", "--variant", "nope"], "unknown variant 'nope'"),
+    "unknown preset": (lambda t: ["train", "--preset", "huge"], "unknown architecture preset 'huge'"),
+    "zero unroll": (lambda t: ["train", "--unroll", "0"], "unroll must be >= 1, got 0"),
+    "negative lr": (lambda t: ["train", "--lr", "-1"], "need lr > 0"),
+    "unknown optimiser": (lambda t: ["train", "--optimizer", "adagrad"], "optimizer must be one of sgd"),
+    "unknown level": (lambda t: ["train", "--level", "lava"], "level must be one of thesis"),
+    "bad game parameter": (lambda t: ["train", "--env", "gravity=1"], "bad game parameter 'gravity=1'"),
+    "resume of nothing": (lambda t: ["train", "--resume", str(t / "nowhere")],
+                          "cannot resume: {t}/nowhere/config.json does not exist"),
+    "data set without a manifest": (lambda t: ["train", "--data", str(t)], "{t} has no manifest.json"),
+    "sweep of a controller": (lambda t: ["sweep", "--variant", "final_proposal"], "trains online against the game"),
+    "sweep resume of nothing": (lambda t: ["sweep", "--resume", str(t / "nowhere")],
+                                "sweep directory {t}/nowhere does not exist"),
+    "sweep resume of a non-sweep": (lambda t: ["sweep", "--resume", str(t)], "{t} is not a sweep directory"),
+    "sweep resume changing the grid": (lambda t: ["sweep", "--resume", str(_fake_sweep(t)), "--lr", "0.5"],
+                                       "--lr cannot change (only checkpoint_every, eval_episodes"),
+    "eval of nothing": (lambda t: ["eval", str(t / "nowhere")], "run directory {t}/nowhere does not exist"),
+    "collect over another data set": (lambda t: ["collect", str(_dataset(t / "data"))],
+                                      "was written by a different collection"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_CLI)
+def test_bad_cli_input_is_refused_by_name(tmp_path, capsys, case):
+    args, message = BAD_CLI[case]
+    argv = args(tmp_path)
+    if argv[0] in ("train", "sweep") and "--resume" not in argv:
+        argv += ["--run-dir", str(tmp_path / "run"), "--preset", "tiny"] if "--preset" not in argv else [
+            "--run-dir", str(tmp_path / "run")]
+    capsys.readouterr()
+    assert cli_main(argv) == 2
+    assert message.format(t=tmp_path) in capsys.readouterr().err
+
+
+def _bad_api(case: str, tmp: Path):
+    import numpy as np
+
+    from cdrl.data.episode import Episode
+    from cdrl.data.store import EpisodeDataset
+    from cdrl.data.stream import ChunkStream
+    from cdrl.runs.config import RunConfig
+    from cdrl.runs.sweep import Grid
+    from envs.preprocess import preprocess
+
+    return {
+        "grid repeats a value": lambda: Grid(lr=(0.1, 0.1)),
+        "empty episode source": lambda: ChunkStream([], batch=1, unroll=4),
+        "frames without a time axis": lambda: Episode(frames=np.zeros((3, 4), np.uint8),
+                                                      actions=np.zeros((3, 3), np.float32),
+                                                      rewards=np.zeros(3, np.float32)),
+        "unknown split": lambda: EpisodeDataset(_dataset(tmp / "d"), split="valid"),
+        "crop not a multiple of the output": lambda: preprocess(np.zeros((10, 10, 3), np.uint8), None, (3, 3)),
+        "zero checkpoint interval": lambda: RunConfig(checkpoint_every=0),
+    }[case]
+
+
+BAD_API = {
+    "grid repeats a value": "the grid repeats a value of lr",
+    "empty episode source": "the episode source is empty",
+    "frames without a time axis": r"Episode.frames must be \[N, H, W\], got shape \(3, 4\)",
+    "unknown split": "split must be 'train', 'test' or 'all', got 'valid'",
+    "crop not a multiple of the output": r"crop size \(10, 10\) is not a multiple of out_size \(3, 3\)",
+    "zero checkpoint interval": "checkpoint_every must be >= 1, got 0",
+}
+
+
+@pytest.mark.parametrize("case", BAD_API)
+def test_bad_api_input_is_refused_by_name(tmp_path, case):
+    with pytest.raises(ValueError, match=BAD_API[case]):
+        _bad_api(case, tmp_path)()

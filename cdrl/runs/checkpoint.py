@@ -7,6 +7,7 @@ complete, so an interrupted save never replaces a good checkpoint; the last k ar
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -34,15 +35,38 @@ class Checkpoints:
 
     def save(self, step: int, state, meta: dict[str, Any]) -> None:
         """Save `state` as checkpoint `step`, replacing a stale one of the same step (left by a
-        corrupt checkpoint that a resumed run has reached again)."""
+        corrupt checkpoint that a resumed run has reached again). A write that fails (a full
+        disk) raises `CheckpointError` naming the checkpoint; its partial temporary directory is
+        removed and the earlier checkpoints are left as they were."""
         if step in self.manager.all_steps():
             self.manager.delete(step)
-        self.manager.save(
-            step,
-            args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
-            force=True,
-        )
-        self.manager.wait_until_finished()
+        self._remove_temporary(step)  # left by a save that failed or was killed
+        try:
+            self.manager.save(
+                step,
+                args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+                force=True,
+            )
+            self.manager.wait_until_finished()
+        except OSError as exc:
+            self._discard_partial(step)
+            kept = ", ".join(map(str, self.steps())) or "none"
+            raise CheckpointError(
+                f"could not write checkpoint {self.directory / str(step)}: {exc.strerror or exc}; the earlier "
+                f"checkpoints are intact (steps: {kept}) and a resumed run starts from the newest") from exc
+
+    def _discard_partial(self, step: int) -> None:
+        try:
+            self.manager.wait_until_finished()
+        except Exception:  # noqa: BLE001 - the save already failed; only its leftovers matter now
+            pass
+        self._remove_temporary(step)
+
+    def _remove_temporary(self, step: int) -> None:
+        """Remove the temporary directory of an unfinished save of `step` (orbax writes a
+        checkpoint to '<step>.orbax-checkpoint-tmp*' and renames it when complete)."""
+        for path in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):
+            shutil.rmtree(path, ignore_errors=True)
 
     def read_meta(self, step: int) -> dict[str, Any]:
         restored = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))

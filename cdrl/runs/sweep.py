@@ -7,9 +7,11 @@ data order, exactly as `cdrl train --seed` would), and jitted once. A configurat
 diverges keeps its last good state and stops there while the others go on.
 
 `sweep_run` writes one ordinary run directory per configuration (config.json, metrics.jsonl,
-eval.jsonl, a final checkpoint), so `cdrl eval`, `cdrl plot` and `cdrl train --resume` work
-on each of them, plus `results.json` and `results.md` for the whole grid (`cdrl sweep`
-also draws every loss curve into `curves.png`: `cdrl.analysis.plots.plot_sweep`).
+eval.jsonl, checkpoints every `checkpoint_every` steps), so `cdrl eval`, `cdrl plot` and
+`cdrl train --resume` work on each of them, plus `results.json` and `results.md` for the
+whole grid (`cdrl sweep` also draws every loss curve into `curves.png`:
+`cdrl.analysis.plots.plot_sweep`). `resume_sweep` (`cdrl sweep --resume DIR`) continues a
+killed sweep exactly from its last complete checkpoint (`cdrl.runs.sweepstate`).
 `lr_search` is the thesis's procedure (section 4.3.1): start high and lower the rate until
 no parameter group's norm ratio ||grad|| / ||param|| exceeds a threshold over a probe
 budget, with every candidate probed in parallel.
@@ -40,6 +42,8 @@ from cdrl.runs.config import RunConfig
 from cdrl.runs.offline import step_record
 from cdrl.runs.rundir import RunDir, atomic_write_text
 from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
+from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, read_progress, read_sweep, restore_configs, write_progress,
+                                  write_sweep)
 from cdrl.training.loop import enter_stage, stage_schedule
 from cdrl.training.monitor import group_names
 from cdrl.training.optim import HParams, init_opt_state
@@ -139,16 +143,22 @@ StepCallback = Callable[[int, dict, float, TrainState], None]
 
 
 def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, ChunkStream], steps: int,
-             callback: StepCallback | None = None, on_diverge: Callable[[int, int, TrainState], None] | None = None):
+             callback: StepCallback | None = None, on_diverge: Callable[[int, int, TrainState], None] | None = None,
+             start: int = 0, resumed: tuple[TrainState, np.ndarray] | None = None):
     """The host loop of a sweep: `steps` vmapped train steps. `streams` maps each seed to
     its data stream. `callback(step, metrics, seconds, states)` sees every step's metrics
     (numpy, config axis first) and the stacked states after it; `on_diverge(step, i, state_i)` sees the last good state of a
-    configuration at the step it diverges. Returns (stacked final states, alive mask)."""
+    configuration at the step it diverges. `resumed` (stacked states, alive mask) continues
+    a sweep from step `start`. Returns (stacked final states, alive mask)."""
     states, hps = init_sweep(variant, cfgs)
     alive = jnp.ones((len(cfgs),), bool)
+    if resumed is not None:
+        states, alive = resumed[0], jnp.asarray(resumed[1], bool)
     schedule = stage_schedule(variant, steps)
-    for step in range(steps):
-        states, hps = enter_stage(variant, schedule, step, states, hps)
+    states, hps = enter_stage(variant, schedule, start, states, hps, resumed=start > 0)
+    for step in range(start, steps):
+        if step > start:
+            states, hps = enter_stage(variant, schedule, step, states, hps)
         chunk_of = {seed: stream.next_chunk() for seed, stream in streams.items()}
         chunks = jax.tree.map(lambda *xs: np.stack(xs), *[chunk_of[c.seed] for c in cfgs])
         t0 = time.perf_counter()
@@ -180,42 +190,73 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     Returns one row per configuration (see `results.json`). The sweep directory and every
     configuration's directory are locked while it runs (`RunDir.lock`)."""
     run_dir = Path(run_dir)
-    if (run_dir / "results.json").exists() or (run_dir / "sweep.json").exists():
-        raise FileExistsError(f"{run_dir} already holds a sweep; pick another --run-dir")
+    if (run_dir / "results.json").exists() or (run_dir / SWEEP_FILE).exists():
+        raise FileExistsError(f"{run_dir} already holds a sweep; continue it with `cdrl sweep --resume {run_dir}` "
+                              "or pick another --run-dir")
     _check_grid(make_variant(base.variant, base.arch))
+    with _locked(run_dir, grid, base):
+        return _sweep_run(base, grid, run_dir, progress, resume=False)
+
+
+def resume_sweep(run_dir: str | Path, overrides: dict | None = None, progress: bool | None = None) -> list[dict]:
+    """Continue the sweep in `run_dir` from its last complete checkpoint (`cdrl sweep
+    --resume`): every configuration's state and data cursor from its own run directory, the
+    diverged ones stopped; `overrides` may change only the resumable options (`steps`, ...)."""
+    run_dir = Path(run_dir)
+    base, grid = read_sweep(run_dir, overrides)
+    grid = Grid(**{k: tuple(v) for k, v in grid.items()})
+    with _locked(run_dir, grid, base):
+        return _sweep_run(base, grid, run_dir, progress, resume=True)
+
+
+def _locked(run_dir: Path, grid: Grid, base: RunConfig) -> contextlib.ExitStack:
+    """The locks of the sweep directory and every configuration's run directory."""
     with contextlib.ExitStack() as locks:
         for path in [run_dir] + [run_dir / grid.name(c) for c in grid.configs(base)]:
             locks.enter_context(RunDir(path).lock())
-        return _sweep_run(base, grid, run_dir, progress)
+        return locks.pop_all()
 
 
-def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None) -> list[dict]:
+def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None, resume: bool) -> list[dict]:
     cfgs = grid.configs(base)
     cache = run_dir.parent / "data-cache"
     episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
     for train_eps, test_eps in episodes.values():
         verify_data(base, train_eps, test_eps)
-    base = with_obs_norm(base, cache)  # the same statistics for every seed: one architecture
+    if not resume:
+        base = with_obs_norm(base, cache)  # the same statistics for every seed: one architecture
     cfgs = grid.configs(base)
     variant = make_variant(base.variant, base.arch)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run_dir / "sweep.json", json.dumps(
-        {"base": dataclasses.asdict(base), "grid": dataclasses.asdict(grid)}, indent=2) + "\n")
+    write_sweep(run_dir, base, dataclasses.asdict(grid))
     streams = _streams(cfgs, lambda c: episodes[c.seed][0])
     runs = [RunDir(run_dir / grid.name(c)) for c in cfgs]
+    ckpts = [run.checkpoints(max(SWEEP_KEEP, c.keep_checkpoints)) for c, run in zip(cfgs, runs)]
+    names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
+    done = read_progress(run_dir, len(cfgs)) if resume else {"step": 0, "alive": [True] * len(cfgs), "diverged": {}}
+    start, diverged = int(done["step"]), done["diverged"]
+    resumed = None
+    if start > 0:
+        fresh, _ = init_sweep(variant, cfgs)
+        states, cursors = restore_configs(runs, ckpts, cfgs, [take(fresh, i) for i in range(len(cfgs))], done)
+        resumed = (stack(states), np.asarray(done["alive"]))
+        for seed, cursor in cursors.items():
+            streams[seed].load_state_dict(cursor)
+    else:
+        for run in runs:
+            run.metrics.truncate(0)
+            run.evals.truncate(0)
     for c, run in zip(cfgs, runs):
         run.write_config(c)
-    names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
-    diverged: dict[int, dict] = {}
 
     def save(step: int, i: int, state: TrainState) -> None:
         c = cfgs[i]
         meta = {"step": step, "config": dataclasses.asdict(c), "stream": streams[c.seed].state_dict(),
                 "key": np.asarray(jax.random.PRNGKey(c.seed)).tolist()}
-        runs[i].checkpoints(c.keep_checkpoints).save(step, state, meta)
+        ckpts[i].save(step, state, meta)
 
     show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=base.steps, disable=not show, desc=f"sweep {base.variant} x{len(cfgs)}", unit="step")
+    bar = tqdm(total=base.steps, initial=min(start, base.steps), disable=not show,
+               desc=f"sweep {base.variant} x{len(cfgs)}", unit="step")
     frames = base.batch * base.unroll
     pending: list[list[dict]] = [[] for _ in cfgs]
     sweep_fps: list[float] = []
@@ -240,20 +281,22 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
             for i in np.flatnonzero(metrics["alive_before"] & ~metrics["diverged"]):
                 scores = evaluate(variant, take(states.params, int(i)), held_out(int(i)), cfgs[i].unroll)
                 runs[i].evals.append([{"step": done, "split": "test", **scores}])
-        if done % base.checkpoint_every == 0:
+        if done % base.checkpoint_every == 0 or done == base.steps:
+            alive = metrics["alive_before"] & ~metrics["diverged"]
             for i, run in enumerate(runs):
                 run.metrics.append(pending[i])
                 pending[i] = []
+                if alive[i]:
+                    save(done, i, take(states, i))
+            write_progress(run_dir, done, alive, diverged)
         bar.update(1)
         bar.set_postfix(loss=f"{float(np.mean(metrics['loss'])):.4f}", fps=f"{sweep_fps[-1]:.0f}")
 
-    states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge=save)
+    states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge=save, start=start,
+                             resumed=resumed)
     bar.close()
     rows = []
     for i, (c, run) in enumerate(zip(cfgs, runs)):
-        run.metrics.append(pending[i])
-        if alive[i]:
-            save(base.steps, i, take(states, i))
         rows.append(_result_row(variant, c, run, take(states, i).params, episodes[c.seed], diverged.get(i)))
     # The first step compiles; report the steady state.
     steady = sweep_fps[1:] or sweep_fps
