@@ -16,7 +16,7 @@ from cdrl.runs.sweep import GRID_FIELDS
 
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
-_TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations
+_TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations (bool: --x/--no-x)
 
 
 def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...] = (), skip: tuple[str, ...] = ()) -> None:
@@ -31,6 +31,10 @@ def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...
             default = "from --recipe: " + ", ".join(f"{name} {table[f.name]}" for name, table in RECIPES.items())
         else:
             default = f.default
+        if f.type == "bool":
+            parser.add_argument("--" + f.name.replace("_", "-"), action=argparse.BooleanOptionalAction,
+                                default=argparse.SUPPRESS, help=f"{f.metadata['help']} (default: {default})")
+            continue
         parser.add_argument(
             "--" + f.name.replace("_", "-"),
             type=_TYPES[f.type],

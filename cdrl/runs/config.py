@@ -87,6 +87,7 @@ class RunConfig:
     keep_checkpoints: int = _opt(3, "how many checkpoints to keep")
     eval_every: int = _opt(250, "steps between held-out evaluations (0: only at the end)")
     eval_episodes: int = _opt(4, "held-out episodes per evaluation (online variants: games per policy)")
+    tensorboard: bool = _opt(True, "also write TensorBoard event files to RUN_DIR/tb (view: tensorboard --logdir runs)")
     env: str = _opt("", "game parameters over the level's, e.g. 'max_steps=300,pellet_init_fill=0.3'")
     scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
@@ -153,4 +154,4 @@ def saved_config(saved: dict) -> RunConfig:
 
 
 # Options that may change when a run is resumed (they do not change what the steps compute).
-RESUMABLE = {"steps", "checkpoint_every", "keep_checkpoints", "eval_every", "eval_episodes"}
+RESUMABLE = {"steps", "checkpoint_every", "keep_checkpoints", "eval_every", "eval_episodes", "tensorboard"}

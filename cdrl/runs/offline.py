@@ -7,6 +7,7 @@ checkpoint left off: same state, same data cursor, so the same per-step losses.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
@@ -21,6 +22,7 @@ from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
+from cdrl.runs.tboard import TBLog
 from cdrl.training.loop import divergence_message, enter_stage, stage_schedule
 from cdrl.training.step import init_state, ratio_names, train_step
 
@@ -61,41 +63,51 @@ def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool 
         return {"step": step, "config": dataclasses.asdict(cfg), "stream": stream.state_dict(),
                 "key": np.asarray(key).tolist()}
 
+    tb = TBLog(run.tb_dir, start, cfg.tensorboard)
+    if tb.replay_evals(run.evals.read(), start) and len(test_eps):
+        tb.predictions(start, variant, state.params, test_eps[0])
+
     def run_eval(step, params):
         episodes = [test_eps[i] for i in range(min(cfg.eval_episodes, len(test_eps)))]
         result = {"step": step, "split": "test", **evaluate(variant, params, episodes, cfg.unroll)}
         run.evals.append([result])
+        tb.eval(result)
+        tb.predictions(step, variant, params, episodes[0])
+        tb.flush()
         return result
 
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(total=cfg.steps, initial=start, disable=not show, desc=f"train {cfg.variant}", unit="step")
     frames_per_step = cfg.batch * cfg.unroll
     pending, last_eval, t_last = [], None, time.perf_counter()
-    for step in range(start, cfg.steps):
-        if step > start:
-            state, hp = enter_stage(variant, schedule, step, state, hp)
-        state, metrics = train_step(variant, state, hp, stream.next_chunk())
-        metrics = jax.device_get(metrics)
-        now = time.perf_counter()
-        fps, t_last = frames_per_step / max(now - t_last, 1e-9), now
-        if metrics["diverged"]:
-            message, group, ratio = divergence_message(step, metrics, names, cfg.diverge_threshold)
-            run.metrics.append(pending)
-            ckpts.save(step, state, meta(step))
-            bar.close()
-            raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
-        pending.append(step_record(step, metrics, names, fps))
-        bar.update(1)
-        bar.set_postfix(loss=f"{pending[-1]['loss']:.4f}", fps=f"{fps:.0f}")
-        done = step + 1
-        if cfg.eval_every and done % cfg.eval_every == 0 and done < cfg.steps:
-            last_eval = run_eval(done, state.params)
-        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-            run.metrics.append(pending)
-            pending = []
-            ckpts.save(done, state, meta(done))
-    run.metrics.append(pending)
-    bar.close()
-    if start < cfg.steps or last_eval is None:
-        last_eval = run_eval(cfg.steps, state.params)
+    with contextlib.closing(tb):
+        for step in range(start, cfg.steps):
+            if step > start:
+                state, hp = enter_stage(variant, schedule, step, state, hp)
+            state, metrics = train_step(variant, state, hp, stream.next_chunk())
+            metrics = jax.device_get(metrics)
+            now = time.perf_counter()
+            fps, t_last = frames_per_step / max(now - t_last, 1e-9), now
+            if metrics["diverged"]:
+                message, group, ratio = divergence_message(step, metrics, names, cfg.diverge_threshold)
+                run.metrics.append(pending)
+                ckpts.save(step, state, meta(step))
+                bar.close()
+                raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
+            pending.append(step_record(step, metrics, names, fps))
+            tb.step(pending[-1])
+            bar.update(1)
+            bar.set_postfix(loss=f"{pending[-1]['loss']:.4f}", fps=f"{fps:.0f}")
+            done = step + 1
+            if cfg.eval_every and done % cfg.eval_every == 0 and done < cfg.steps:
+                last_eval = run_eval(done, state.params)
+            if done % cfg.checkpoint_every == 0 or done == cfg.steps:
+                run.metrics.append(pending)
+                pending = []
+                ckpts.save(done, state, meta(done))
+                tb.flush()
+        run.metrics.append(pending)
+        bar.close()
+        if start < cfg.steps or last_eval is None:
+            last_eval = run_eval(cfg.steps, state.params)
     return {"run_dir": str(run.path), "steps": cfg.steps, "final_eval": last_eval}

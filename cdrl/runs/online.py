@@ -25,6 +25,7 @@ from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import run_game, with_obs_norm
+from cdrl.runs.tboard import TBLog
 from cdrl.training.loop import divergence_message
 from cdrl.training.monitor import group_names
 from cdrl.training.online import OnlineConfig, OnlineHParams, init_online, online_step
@@ -59,10 +60,14 @@ def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool |
     opened = run.open(cfg, init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp), resume)
     state, start, ckpts = opened.state, opened.start, opened.checkpoints
     names = group_names(state.train.params)
+    tb = TBLog(run.tb_dir, start, cfg.tensorboard)
+    tb.replay_evals(run.evals.read(), start)
 
     def evaluate_policies(step):
         rows = compare_policies(variant, state.train.params, game, env_params, cfg.eval_episodes, cfg.episode_steps)
-        run.evals.append([{"step": step, "split": "play", "policies": rows}])
+        record = {"step": step, "split": "play", "policies": rows}
+        run.evals.append([record])
+        tb.eval(record)
         return rows
 
     show = sys.stderr.isatty() if progress is None else progress
@@ -91,6 +96,7 @@ def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool |
             "worst_group": names[int(m["worst_group"])],
             "ratios": dict(zip(names, np.asarray(m["ratios"]).tolist())), "fps": fps,
         })
+        tb.step(pending[-1])
         bar.update(1)
         bar.set_postfix(loss=f"{pending[-1]['loss']:.4f}", reward=f"{pending[-1]['reward']:.3f}")
         done = step + 1
@@ -100,10 +106,12 @@ def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool |
             run.metrics.append(pending)
             pending = []
             ckpts.save(done, state, {"step": done, "config": dataclasses.asdict(cfg)})
+            tb.flush()
     run.metrics.append(pending)
     bar.close()
     if start < cfg.steps or rows is None:
         rows = evaluate_policies(cfg.steps)
+    tb.close()
     print(format_table(rows), file=sys.stderr)
     return {"run_dir": str(run.path), "steps": cfg.steps, "policies": rows}
 

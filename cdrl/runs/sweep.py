@@ -44,6 +44,7 @@ from cdrl.runs.rundir import RunDir, atomic_write_text
 from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, read_progress, read_sweep, restore_configs, write_progress,
                                   write_sweep)
+from cdrl.runs.tboard import TBLog
 from cdrl.training.loop import enter_stage, stage_schedule
 from cdrl.training.monitor import group_names
 from cdrl.training.optim import HParams, init_opt_state
@@ -276,11 +277,15 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
                                "finite": bool(metrics["finite"][i])}
                 continue
             pending[i].append(step_record(step, take(metrics, i), names, frames / max(seconds, 1e-9)))
+            tbs[i].step(pending[i][-1])
         done = step + 1
         if base.eval_every and done % base.eval_every == 0 and done < base.steps:
             for i in np.flatnonzero(metrics["alive_before"] & ~metrics["diverged"]):
-                scores = evaluate(variant, take(states.params, int(i)), held_out(int(i)), cfgs[i].unroll)
-                runs[i].evals.append([{"step": done, "split": "test", **scores}])
+                params = take(states.params, int(i))
+                record = {"step": done, "split": "test", **evaluate(variant, params, held_out(int(i)), cfgs[i].unroll)}
+                runs[i].evals.append([record])
+                tbs[i].eval(record)
+                tbs[i].predictions(done, variant, params, held_out(int(i))[0])
         if done % base.checkpoint_every == 0 or done == base.steps:
             alive = metrics["alive_before"] & ~metrics["diverged"]
             for i, run in enumerate(runs):
@@ -288,16 +293,24 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
                 pending[i] = []
                 if alive[i]:
                     save(done, i, take(states, i))
+                tbs[i].flush()
             write_progress(run_dir, done, alive, diverged)
         bar.update(1)
         bar.set_postfix(loss=f"{float(np.mean(metrics['loss'])):.4f}", fps=f"{sweep_fps[-1]:.0f}")
 
+    tbs = [TBLog(run.tb_dir, start, c.tensorboard) for c, run in zip(cfgs, runs)]
+    for tb, run in zip(tbs, runs):
+        tb.replay_evals(run.evals.read(), start)
     states, alive = run_grid(variant, cfgs, streams, base.steps, callback, on_diverge=save, start=start,
                              resumed=resumed)
     bar.close()
     rows = []
     for i, (c, run) in enumerate(zip(cfgs, runs)):
         rows.append(_result_row(variant, c, run, take(states, i).params, episodes[c.seed], diverged.get(i)))
+        final = run.evals.read()[-1]  # the final held-out evaluation
+        tbs[i].eval(final)
+        tbs[i].predictions(final["step"], variant, take(states, i).params, held_out(i)[0])
+        tbs[i].close()
     # The first step compiles; report the steady state.
     steady = sweep_fps[1:] or sweep_fps
     summary = {"configs": len(cfgs), "sweep_fps": float(np.median(steady)), "rows": rows}
