@@ -11,6 +11,7 @@ import json
 import sys
 from pathlib import Path
 
+from cdrl.data.gymrec import OBS_MODES
 from cdrl.runs.config import RECIPES, RunConfig
 from cdrl.runs.sweep import GRID_FIELDS
 
@@ -153,11 +154,19 @@ def _cmd_plot(args) -> int:
 
 
 def _cmd_collect(args) -> int:
-    from cdrl.data import store
+    from cdrl.data import gymrec, store
 
     try:
-        store.collect(Path(args.out), args.episodes, policy=args.policy, seed=args.seed,
-                        max_steps=args.episode_steps, obs_size=args.obs_size)
+        if args.env:
+            gymrec.record_env(args.env, Path(args.out), args.episodes, size=args.obs_size, crop=args.crop,
+                              obs=args.obs or "image", policy=args.policy or "uniform", seed=args.seed,
+                              max_steps=args.episode_steps, env_kwargs=gymrec.parse_env_kwargs(args.env_kwargs))
+        else:
+            for name in ("obs", "crop", "env_kwargs"):
+                if getattr(args, name):
+                    raise ValueError(f"--{name.replace('_', '-')} is for a gymnasium game (--env ID)")
+            store.collect(Path(args.out), args.episodes, policy=args.policy or "behaviour", seed=args.seed,
+                          max_steps=args.episode_steps, obs_size=args.obs_size)
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
         return 2
@@ -220,14 +229,30 @@ def build_parser() -> argparse.ArgumentParser:
                            "(default: the thesis's encoder layer 4 and decoder layer 3 kernels)")
     plot.set_defaults(func=_cmd_plot)
 
-    col = sub.add_parser("collect", help="record episodes of the built-in game to a data set directory")
+    col = sub.add_parser("collect", help="record episodes of the built-in game, or of any gymnasium game (--env), "
+                                          "to a data set directory")
     col.add_argument("out", metavar="OUT_DIR")
     col.add_argument("--episodes", type=int, default=100, help="number of episodes (default: 100)")
-    col.add_argument("--policy", choices=["behaviour", "uniform"], default="behaviour",
-                     help="behaviour switching (observation data) or uniform random (action data) (default: behaviour)")
+    col.add_argument("--policy", choices=["behaviour", "uniform"], default=None,
+                     help="behaviour switching (observation data, built-in game only) or uniform random over the "
+                          "action space (action data) (default: behaviour; uniform with --env)")
     col.add_argument("--seed", type=int, default=0, help="seed of the games and the policy (default: 0)")
     col.add_argument("--episode-steps", type=int, default=500, help="step limit of an episode (default: 500)")
-    col.add_argument("--obs-size", type=int, default=150, help="side of the square observation (default: 150)")
+    col.add_argument("--obs-size", type=int, default=150,
+                     help="side of the square observation: 64 for the small preset, 16 for tiny (default: 150)")
+    col.add_argument("--env", metavar="ID", default=None,
+                     help="record this registered gymnasium game instead of the built-in one, e.g. CartPole-v1 "
+                          "(Discrete actions are recorded one-hot, Box actions rescaled to [0, 1]) (default: none)")
+    col.add_argument("--obs", choices=OBS_MODES, default=None,
+                     help="with --env: record the observations (image) or env.render() frames of "
+                          "render_mode='rgb_array' (render: for games whose observations are not images) "
+                          "(default: image)")
+    col.add_argument("--crop", type=int, nargs=4, metavar=("TOP", "LEFT", "HEIGHT", "WIDTH"), default=None,
+                     help="with --env: the part of each frame to keep, its sides multiples of --obs-size "
+                          "(default: the largest such central square)")
+    col.add_argument("--env-kwargs", nargs="+", metavar="KEY=VALUE", default=None,
+                     help="with --env: options of gymnasium.make, as key=value items or one JSON object, "
+                          "e.g. is_slippery=false (default: none)")
     col.set_defaults(func=_cmd_collect)
 
     var = sub.add_parser("variants", help="list the model variants")

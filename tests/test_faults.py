@@ -502,6 +502,24 @@ BAD_CLI = {
     "eval of nothing": (lambda t: ["eval", str(t / "nowhere")], "run directory {t}/nowhere does not exist"),
     "collect over another data set": (lambda t: ["collect", str(_dataset(t / "data"))],
                                       "was written by a different collection"),
+    "unknown gymnasium game": (lambda t: ["collect", str(t / "g"), "--env", "NoSuchGame-v0"],
+                               "unknown gymnasium environment 'NoSuchGame-v0'"),
+    "a game whose observations are not images": (
+        lambda t: ["collect", str(t / "g"), "--env", "CartPole-v1"],
+        "CartPole-v1's observations are not images (observation space Box("),
+    "malformed --env-kwargs": (lambda t: ["collect", str(t / "g"), "--env", "CartPole-v1", "--obs", "render",
+                                          "--env-kwargs", "gravity"], "bad --env-kwargs item 'gravity'"),
+    "--env-kwargs the game does not take": (
+        lambda t: ["collect", str(t / "g"), "--env", "CartPole-v1", "--obs", "render", "--env-kwargs", "bogus=1"],
+        "gymnasium environment 'CartPole-v1' does not take --env-kwargs"),
+    "the built-in game's policy for a gymnasium game": (
+        lambda t: ["collect", str(t / "g"), "--env", "CartPole-v1", "--obs", "render", "--policy", "behaviour"],
+        "policy 'behaviour' is for the built-in game"),
+    "a crop outside the frame": (
+        lambda t: ["collect", str(t / "g"), "--env", "CartPole-v1", "--obs", "render", "--crop", "0", "0", "500", "500"],
+        "--crop [0, 0, 500, 500] does not fit in the 400x600 frames"),
+    "a crop without a gymnasium game": (lambda t: ["collect", str(t / "g"), "--crop", "0", "0", "64", "64"],
+                                        "--crop is for a gymnasium game (--env ID)"),
 }
 
 

@@ -79,6 +79,7 @@ class RunConfig:
                                 "by the training frames' mean and std, measured when the run starts)")
     obs_mean: float = _opt(0.0, "brightness subtracted from the encoder's input (set by obs_norm data)")
     obs_std: float = _opt(1.0, "divisor of the encoder's input (set by obs_norm data)")
+    action_dim: int = _opt(3, "values per action, the action encoder's input (set from the data when the run starts)")
     fc_init_gain: float = _recipe_opt("scale of the core's FC layer's LeCun-normal initial kernel (1: the thesis)")
     steps: int = _opt(1000, "training steps (chunks)")
     seed: int = _opt(0, "seed of the parameters and the data order")
@@ -107,7 +108,8 @@ class RunConfig:
         if self.lr_schedule == "cosine" and self.lr_decay_steps == 0:
             object.__setattr__(self, "lr_decay_steps", self.steps)
         preset(self.preset)
-        for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints"):
+        for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
+                     "action_dim"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         choices = {"scope": ("controller", "all"), "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
@@ -134,7 +136,7 @@ class RunConfig:
     @property
     def arch(self) -> ArchConfig:
         return dataclasses.replace(preset(self.preset), obs_mean=self.obs_mean, obs_std=self.obs_std,
-                                   fc_init_gain=self.fc_init_gain)
+                                   fc_init_gain=self.fc_init_gain, action_dim=self.action_dim)
 
     def opt_hparams(self) -> OptHParams:
         """The optimiser's traced numbers."""

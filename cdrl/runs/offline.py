@@ -21,7 +21,7 @@ from cdrl.evaluation.metrics import evaluate
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
-from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
+from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.tboard import TBLog
 from cdrl.training.loop import divergence_message, enter_stage, stage_schedule
 from cdrl.training.step import init_state, ratio_names, train_step
@@ -45,9 +45,10 @@ def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool 
     train_eps, test_eps = load_episodes(cfg, cache)
     verify_data(cfg, train_eps, test_eps)
     if not resume:
-        cfg = with_obs_norm(cfg, cache)
+        cfg = with_obs_norm(with_data_dims(cfg, train_eps), cache)
     variant = make_variant(cfg.variant, cfg.arch)
-    stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size, seed=cfg.seed)
+    stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size,
+                         action_dim=cfg.arch.action_dim, seed=cfg.seed)
     hp = cfg.hparams(variant)
     key = jax.random.PRNGKey(cfg.seed)
     opened = run.open(cfg, init_state(variant, key, cfg.batch, hp), resume)

@@ -64,6 +64,22 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
 
 
+def data_action_dim(episodes) -> int:
+    """Values per action of an episode source: a data set's manifest says it; else the first
+    episode's actions."""
+    if isinstance(episodes, store.EpisodeDataset) and "action_dim" in episodes.manifest.get("data", {}):
+        return int(episodes.manifest["data"]["action_dim"])
+    if len(episodes) == 0:
+        raise ValueError("the run's data holds no training episodes")
+    return int(episodes[0].actions.shape[1])
+
+
+def with_data_dims(cfg: RunConfig, train) -> RunConfig:
+    """`cfg` with `action_dim` from its training data, so the action variants' encoder takes
+    the data's actions (a gymnasium game's one-hot or rescaled actions, 3 for the built-in game)."""
+    return dataclasses.replace(cfg, action_dim=data_action_dim(train))
+
+
 def verify_data(cfg: RunConfig, train, test) -> None:
     """Check, before the first step, every episode file of the splits a run uses when its
     data is a data set directory (the built-in game's cached data included): readable,

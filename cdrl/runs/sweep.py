@@ -41,7 +41,7 @@ from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.offline import step_record
 from cdrl.runs.rundir import RunDir, atomic_write_text
-from cdrl.runs.sources import load_episodes, verify_data, with_obs_norm
+from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, read_progress, read_sweep, restore_configs, write_progress,
                                   write_sweep)
 from cdrl.runs.tboard import TBLog
@@ -181,7 +181,7 @@ def _streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], Sequ
     for c in cfgs:
         if c.seed not in streams:
             streams[c.seed] = ChunkStream(train_eps_of(c), c.batch, c.unroll, image_size=c.arch.image_size,
-                                          seed=c.seed)
+                                          action_dim=c.arch.action_dim, seed=c.seed)
     return streams
 
 
@@ -225,7 +225,7 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
     for train_eps, test_eps in episodes.values():
         verify_data(base, train_eps, test_eps)
     if not resume:
-        base = with_obs_norm(base, cache)  # the same statistics for every seed: one architecture
+        base = with_obs_norm(with_data_dims(base, episodes[cfgs[0].seed][0]), cache)  # one architecture for every seed
     cfgs = grid.configs(base)
     variant = make_variant(base.variant, base.arch)
     write_sweep(run_dir, base, dataclasses.asdict(grid))
@@ -371,7 +371,8 @@ def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, th
         raise ValueError(f"threshold must be > 0, got {threshold}")
     _check_grid(make_variant(base.variant, base.arch))
     train_eps, _ = load_episodes(base, Path(data_cache))
-    base = with_obs_norm(dataclasses.replace(base, steps=probe_steps, diverge_threshold=threshold), Path(data_cache))
+    base = with_obs_norm(with_data_dims(dataclasses.replace(base, steps=probe_steps, diverge_threshold=threshold),
+                                        train_eps), Path(data_cache))
     cfgs = Grid(lr=tuple(candidates)).configs(base)
     variant = make_variant(base.variant, base.arch)
     streams = _streams(cfgs, lambda c: train_eps)

@@ -1,0 +1,174 @@
+"""Any registered gymnasium game as a data set: `cdrl collect DIR --env ID`.
+
+A game's observations must be images, or it must render RGB frames (`--obs render` records
+`env.render()` of `render_mode="rgb_array"`, e.g. CartPole-v1). Frames go through the
+thesis's pre-processing (`envs.preprocess.preprocess`: a crop, block means down to a square
+of `size`, the max over colour channels). Actions are recorded as vectors in [0, 1], as the
+models take them: a Discrete(n) action as its one-hot vector (n values; the env gets the
+argmax), a Box action rescaled from its bounds (the env gets low + a (high - low)), a
+MultiBinary one as is (the env gets a > 0.5). The recording itself is
+`cdrl.data.store.record_gym`: atomic episode files, a manifest, resumable, locked.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from cdrl.data import store
+
+OBS_MODES = ("image", "render")
+POLICIES = ("uniform",)
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionCodec:
+    """How an action space maps to and from the recorded vectors in [0, 1]^dim."""
+
+    space: str
+    dim: int
+    decode: Callable[[np.ndarray], Any]  # recorded vector -> what env.step takes
+    sample: Callable[[np.random.Generator], np.ndarray]  # uniform over the space, as a recorded vector
+
+
+def action_codec(space) -> ActionCodec:
+    """The codec of a Discrete, Box (finite bounds) or MultiBinary action space; ValueError
+    naming any other."""
+    from gymnasium import spaces
+
+    if isinstance(space, spaces.Discrete):
+        n, start = int(space.n), int(space.start)
+
+        def one_hot(rng):
+            return np.eye(n, dtype=np.float32)[rng.integers(n)]
+
+        return ActionCodec(str(space), n, lambda a: int(np.argmax(a)) + start, one_hot)
+    if isinstance(space, spaces.Box):
+        low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+            raise ValueError(f"action space {space} has unbounded values: they cannot be rescaled to [0, 1]")
+        shape, dtype, dim = space.shape, space.dtype, int(np.prod(space.shape))
+
+        def rescale(a):
+            return (low + np.asarray(a, np.float64).reshape(shape) * (high - low)).astype(dtype)
+
+        return ActionCodec(str(space), dim, rescale, lambda rng: rng.uniform(0.0, 1.0, dim).astype(np.float32))
+    if isinstance(space, spaces.MultiBinary):
+        dim = int(np.prod(space.shape))
+        return ActionCodec(str(space), dim, lambda a: (np.asarray(a).reshape(space.shape) > 0.5).astype(np.int8),
+                           lambda rng: rng.integers(0, 2, dim).astype(np.float32))
+    raise ValueError(f"action space {space} is not supported: cdrl records Discrete, Box (bounded) and MultiBinary "
+                     "actions")
+
+
+def parse_env_kwargs(items: Sequence[str] | str | None) -> dict:
+    """`--env-kwargs`: one JSON object, or key=value items whose values are read as JSON
+    where they parse (numbers, true/false, lists), else as strings."""
+    if not items:
+        return {}
+    items = [items] if isinstance(items, str) else list(items)
+    if len(items) == 1 and items[0].lstrip().startswith("{"):
+        try:
+            value = json.loads(items[0])
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"bad --env-kwargs {items[0]!r}: not a JSON object ({exc})") from None
+        if not isinstance(value, dict):
+            raise ValueError(f"bad --env-kwargs {items[0]!r}: not a JSON object")
+        return value
+    out = {}
+    for item in items:
+        for part in item.split(","):
+            key, sep, text = part.partition("=")
+            if not sep or not key.strip():
+                raise ValueError(f"bad --env-kwargs item {part!r}: use key=value (or one JSON object)")
+            try:
+                out[key.strip()] = json.loads(text)
+            except json.JSONDecodeError:
+                out[key.strip()] = text
+    return out
+
+
+def make_env(env_id: str, obs: str = "image", env_kwargs: dict | None = None):
+    """The gymnasium game `env_id` (with `env_kwargs`), whose observations are images
+    (`obs` 'render': its rendered RGB frames). ValueError naming what is wrong."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers cdrl/Slither-v0)
+
+    if obs not in OBS_MODES:
+        raise ValueError(f"--obs must be one of {', '.join(OBS_MODES)}; got {obs!r}")
+    kwargs = dict(env_kwargs or {})
+    if obs == "render":
+        kwargs.setdefault("render_mode", "rgb_array")
+    try:
+        env = gym.make(env_id, **kwargs)
+    except (gym.error.NameNotFound, gym.error.NamespaceNotFound, gym.error.VersionNotFound,
+            gym.error.UnregisteredEnv) as exc:
+        raise ValueError(f"unknown gymnasium environment {env_id!r}: {exc}") from None
+    except gym.error.Error as exc:
+        raise ValueError(f"gymnasium cannot make {env_id!r}: {exc}") from None
+    except TypeError as exc:
+        raise ValueError(f"gymnasium environment {env_id!r} does not take --env-kwargs {kwargs}: {exc}") from None
+    if obs == "render":
+        if env.render_mode != "rgb_array":
+            raise ValueError(f"{env_id} does not render RGB frames (render_mode {env.render_mode!r})")
+        env = gym.wrappers.AddRenderObservation(env, render_only=True)
+    space = env.observation_space
+    shape = getattr(space, "shape", None) or ()
+    is_image = (isinstance(space, gym.spaces.Box) and (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3)))
+                and min(shape[:2]) >= 2)
+    if not is_image:
+        hint = "" if obs == "render" else "; record its rendered frames with --obs render"
+        raise ValueError(f"{env_id}'s observations are not images (observation space {space}){hint}")
+    return env
+
+
+def default_crop(height: int, width: int, size: int) -> tuple[int, int, int, int]:
+    """The central square crop whose side is the largest multiple of `size` in the frame."""
+    side = min(height, width) // size * size
+    if side < size:
+        raise ValueError(f"frames of {height}x{width} are smaller than the output size {size}")
+    return ((height - side) // 2, (width - side) // 2, side, side)
+
+
+def record_env(env_id: str, out_dir: str | Path, episodes: int, size: int = 64, crop: Sequence[int] | None = None,
+               obs: str = "image", policy: str = "uniform", seed: int = 0, max_steps: int | None = None,
+               env_kwargs: dict | None = None, test_fraction: float = 0.1) -> dict:
+    """Record `episodes` episodes of gymnasium game `env_id` into the data set `out_dir`
+    (resumes an interrupted recording). `crop`: (top, left, height, width) of the frame to
+    keep, a multiple of `size` (default: the central square, `default_crop`). Returns the
+    manifest."""
+    if policy not in POLICIES:
+        raise ValueError(f"policy {policy!r} is for the built-in game; a gymnasium game records with "
+                         f"{', '.join(POLICIES)}")
+    if size < 1 or episodes < 1:
+        raise ValueError(f"need size >= 1 and episodes >= 1; got size {size}, episodes {episodes}")
+    env = make_env(env_id, obs, env_kwargs)
+    try:
+        codec = action_codec(env.action_space)
+        height, width = env.observation_space.shape[:2]
+        box = tuple(int(v) for v in crop) if crop is not None else default_crop(height, width, size)
+        if len(box) != 4:
+            raise ValueError(f"--crop takes 4 numbers (top left height width), got {list(box)}")
+        _check_crop(box, height, width, size)
+
+        def uniform(_obs, rng):
+            return codec.sample(rng)
+
+        return store.record_gym(
+            env, out_dir, episodes, uniform, preprocess_kwargs={"crop": box, "out_size": (size, size)}, seed=seed,
+            max_steps=max_steps, test_fraction=test_fraction, action_fn=codec.decode,
+            config_extra={"env_kwargs": env_kwargs or {}, "obs": obs, "action_space": codec.space})
+    finally:
+        env.close()
+
+
+def _check_crop(box: tuple[int, ...], height: int, width: int, size: int) -> None:
+    top, left, h, w = box
+    if top < 0 or left < 0 or h < 1 or w < 1 or top + h > height or left + w > width:
+        raise ValueError(f"--crop {list(box)} does not fit in the {height}x{width} frames")
+    if h % size or w % size:
+        raise ValueError(f"--crop {list(box)}: its height and width must be multiples of the output size {size}")
