@@ -12,6 +12,8 @@ program that another test or notebook compiled is not compiled again.
 """
 import json
 import math
+import re
+import statistics
 import time
 from pathlib import Path
 
@@ -43,13 +45,17 @@ def _jsonl(path):
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def _check_bce(bce, copy_bce, entropy, what):
+def _check_bce(bce, copy_bce, entropy, what, ratio=None):
     """A held-out evaluation: the targets' entropy is a floor under any BCE on them; the model
-    starts at ln 2 and a few tiny steps do not take it much above."""
+    starts at ln 2 and a few tiny steps do not take it much above. The excess ratio, where
+    given, is (BCE - floor) / (copy-last BCE - floor) of these numbers, finite and > 0."""
     _finite(entropy, f"{what} entropy")
     assert 0 < entropy < LN2, (what, entropy)
     assert entropy - EPS <= _finite(bce, f"{what} bce") <= LN2 + SLACK, (what, bce, entropy)
-    assert entropy - EPS <= _finite(copy_bce, f"{what} copy_bce"), (what, copy_bce, entropy)
+    assert entropy + EPS < _finite(copy_bce, f"{what} copy_bce"), (what, copy_bce, entropy)
+    if ratio is not None:
+        assert _finite(ratio, f"{what} excess ratio") > 0, (what, ratio)
+        assert ratio == pytest.approx((bce - entropy) / (copy_bce - entropy), rel=1e-6), (what, ratio, bce, copy_bce, entropy)
 
 
 def _check_figures(runs, names, since):
@@ -59,24 +65,38 @@ def _check_figures(runs, names, since):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", path
 
 
+def _check_recipe(config, what):
+    """A config.json of the default recipe: its resolved values, and the encoder's input
+    standardised by statistics measured from the data."""
+    assert config["recipe"] == "fast", what
+    assert (config["optimizer"], config["lr"], config["momentum"], config["obs_norm"]) == ("sgd", 2.0, 0.9, "data"), what
+    assert (config["batch"], config["unroll"], config["fc_init_gain"]) == (4, 8, 5.0), what
+    assert 0 < _finite(config["obs_mean"], what) < 1 and 0 < _finite(config["obs_std"], what) < 1, what
+
+
 def _check_quickstart(runs, since):
-    """A main run trained in two halves (resumed) and straight through: identical losses,
-    held-out evaluations after each half, and the figures."""
-    records = {}
+    """A main run of the default recipe trained in two halves (resumed) and straight through:
+    identical losses and held-out evaluations (every 3 steps, with their excess ratios), and
+    the figures."""
+    records, evals = {}, {}
     for name in ("main", "main-straight"):
         run = runs / name
-        assert json.loads((run / "config.json").read_text())["steps"] == 6
+        config = json.loads((run / "config.json").read_text())
+        assert (config["steps"], config["eval_every"]) == (6, 3), name
+        _check_recipe(config, name)
         records[name] = _jsonl(run / "metrics.jsonl")
         assert [r["step"] for r in records[name]] == list(range(6)), name
         for r in records[name]:
             assert 0 < _finite(r["loss"], f"{name} loss") <= LN2 + SLACK, (name, r["loss"])
-        evals = _jsonl(run / "eval.jsonl")
-        assert evals[-1]["step"] == 6 and (run / "eval.jsonl").stat().st_mtime >= since
-        for e in evals:
-            _check_bce(e["bce"], e["copy_bce"], e["target_entropy"], f"{name} step {e['step']}")
-    assert [r["step"] for r in _jsonl(runs / "main" / "eval.jsonl")] == [3, 6]
+        evals[name] = _jsonl(run / "eval.jsonl")
+        assert [e["step"] for e in evals[name]] == [3, 6], name
+        assert (run / "eval.jsonl").stat().st_mtime >= since
+        for e in evals[name]:
+            _check_bce(e["bce"], e["copy_bce"], e["target_entropy"], f"{name} step {e['step']}", e["excess_ratio"])
     assert [r["loss"] for r in records["main"]] == [r["loss"] for r in records["main-straight"]]
-    _check_figures(runs, ["observation.png", "episode.png", "loss.png", "prediction.png", "rollout.png"], since)
+    assert evals["main"] == evals["main-straight"]
+    _check_figures(runs, ["observation.png", "episode.png", "loss.png", "excess.png", "prediction.png", "rollout.png"],
+                   since)
 
 
 OFFLINE = ["baseline_ff", "baseline_recurrent", "main", "main_action", "residual", "residual_error",
@@ -85,8 +105,10 @@ CODE_PRED = {"baseline_recurrent", "residual", "residual_error"}  # the variants
 
 
 def _check_variants(runs, since):
-    """variants.json: every offline variant, both seeds, 4 steps, no divergence; BCEs between
-    the entropy floor and ln 2; the summary is the mean of the seeds."""
+    """variants.json: every offline variant, both seeds, 4 steps of the default recipe, no
+    divergence; BCEs between the entropy floor and ln 2 and their excess ratios; the summary
+    is the mean, std, min and max of the seeds; the held-out excess-ratio curve of every seed
+    (evaluations every 2 steps) matches its eval.jsonl; a line of numbers per thesis claim."""
     path = runs / "variants.json"
     assert path.stat().st_mtime >= since
     results = json.loads(path.read_text())
@@ -95,27 +117,51 @@ def _check_variants(runs, since):
     for variant, entry in results["variants"].items():
         rows = entry["per_seed"]
         assert [r["seed"] for r in rows] == [0, 1], variant
+        assert "--recipe fast" in entry["command"] and "--seed 0 1" in entry["command"], entry["command"]
         for r in rows:
             what = f"{variant} seed {r['seed']}"
             assert r["steps"] == 4 and r["diverged_at"] is None, what
-            _check_bce(r["test_bce"], r["test_copy_bce"], r["test_target_entropy"], f"{what} test")
-            _check_bce(r["train_bce"], r["train_copy_bce"], r["train_target_entropy"], f"{what} train")
+            _check_bce(r["test_bce"], r["test_copy_bce"], r["test_target_entropy"], f"{what} test", r["test_excess_ratio"])
+            _check_bce(r["train_bce"], r["train_copy_bce"], r["train_target_entropy"], f"{what} train",
+                       r["train_excess_ratio"])
             assert 0 < _finite(r["final_train_loss"], f"{what} final_train_loss") < 1, what
             if variant in CODE_PRED:
                 assert _finite(r["test_code_pred_mse"], f"{what} code_pred_mse") >= 0, what
             else:
                 assert r["test_code_pred_mse"] is None, what
-            assert (NOTEBOOKS.parent / r["path"] / "metrics.jsonl").is_file(), what
-        for key in ("test_bce", "train_bce", "test_target_entropy", "final_train_loss"):
-            mean = sum(r[key] for r in rows) / len(rows)
-            assert entry["summary"][key]["mean"] == pytest.approx(mean, rel=1e-9), (variant, key)
+            run = NOTEBOOKS.parent / r["path"]
+            assert (run / "metrics.jsonl").is_file(), what
+            _check_recipe(json.loads((run / "config.json").read_text()), what)
+            evals = _jsonl(run / "eval.jsonl")
+            assert [e["step"] for e in evals] == [2, 4], what
+            for e in evals:
+                _check_bce(e["bce"], e["copy_bce"], e["target_entropy"], f"{what} step {e['step']}", e["excess_ratio"])
+            assert evals[-1]["excess_ratio"] == pytest.approx(r["test_excess_ratio"], rel=1e-6), what
+        for key in ("test_bce", "train_bce", "test_target_entropy", "final_train_loss", "test_excess_ratio",
+                    "train_excess_ratio"):
+            seeds = [r[key] for r in rows]
+            summary = entry["summary"][key]
+            assert summary["mean"] == pytest.approx(sum(seeds) / len(seeds), rel=1e-9), (variant, key)
+            assert (summary["min"], summary["max"]) == (min(seeds), max(seeds)), (variant, key)
+            assert summary["std"] == pytest.approx(statistics.stdev(seeds), rel=1e-6, abs=1e-12), (variant, key)
+        curve = entry["held_out_excess_curve"]
+        assert curve["frames"] == [2 * 32, 4 * 32], variant  # 4 streams x 8 frames a step
+        for r, ratios in zip(rows, curve["per_seed"]):
+            evals = _jsonl(NOTEBOOKS.parent / r["path"] / "eval.jsonl")
+            assert ratios == pytest.approx([e["excess_ratio"] for e in evals], rel=1e-9), variant
+    claims = results["claims"]
+    assert [c["figure"] for c in claims] == ["5.1", "5.1", "5.3", "5.6", "5.7", "5.7", "5.8", "5.9"]
+    for c in claims:
+        assert c["claim"] and re.search(r"\d\.\d{3}", c["numbers"]), c  # numbers, not blanks
+        assert "nan" not in c["numbers"].lower(), c
     assert sorted(results["code_scales"]) == [f"{v}/seed{s}" for v in ("residual", "residual_error") for s in (0, 1)]
     for name, scales in results["code_scales"].items():
         assert all(_finite(x, name) >= 0 for x in scales.values()), (name, scales)
         assert scales["code_variance"] > 0, name
-    _check_figures(runs, ["fig5_1_loss.png", "fig5_2_prediction_baseline_ff.png", "fig5_2_prediction_main.png",
-                          "fig5_3_loss.png", "fig5_4_5_ratios.png", "fig5_4_5_ratios_first10pct.png",
-                          "fig5_6_code_error.png", "fig5_7_loss.png", "fig5_8_loss.png", "fig5_9_bce_bars.png",
+    _check_figures(runs, ["fig5_1_loss.png", "fig5_1_excess.png", "fig5_2_prediction_baseline_ff.png",
+                          "fig5_2_prediction_main.png", "fig5_3_loss.png", "fig5_3_excess.png", "fig5_4_5_ratios.png",
+                          "fig5_4_5_ratios_first10pct.png", "fig5_6_code_error.png", "fig5_7_loss.png",
+                          "fig5_7_excess.png", "fig5_8_loss.png", "fig5_8_excess.png", "fig5_9_bce_bars.png",
                           "fig5_9_excess.png"], since)
 
 
@@ -131,7 +177,9 @@ def _check_return(table, what, max_steps=12):
 
 
 def _check_controller(runs, since):
-    """controller.json: the four online runs of seed 0 and the two baseline policies."""
+    """controller.json: the four online runs of seed 0 (the default recipe's values for
+    controller variants) and the two baseline policies; every update logged its chunk's
+    excess ratio, and the final one (mean over the last quarter) is in the results."""
     path = runs / "controller.json"
     assert path.stat().st_mtime >= since
     results = json.loads(path.read_text())
@@ -146,9 +194,18 @@ def _check_controller(runs, since):
         assert abs(_finite(r["predicted_reward_per_step"], f"{name} predicted reward")) < 10, (name, r)
         if name == "action_loop":
             assert r["predicted_reward_per_step"] == 0.0  # it predicts no reward
-        assert 0 < _finite(r["final_obs_bce"], f"{name} obs_bce") <= LN2 + SLACK, (name, r)
+        _check_bce(r["final_obs_bce"], r["final_copy_bce"], r["final_target_entropy"], name)
         assert len(r["action_mean"]) == 3 and all(0 <= _finite(a, name) <= 1 for a in r["action_mean"]), (name, r)
-        assert len(_jsonl(runs / name / "seed0" / "metrics.jsonl")) == 4, name
+        records = _jsonl(runs / name / "seed0" / "metrics.jsonl")
+        assert len(records) == 4, name
+        ratios = [_finite(m["excess_ratio"], f"{name} step {m['step']} excess ratio") for m in records]
+        assert all(x > 0 for x in ratios), (name, ratios)
+        tail = ratios[-1:]  # the last quarter of 4 updates
+        assert _finite(r["final_excess_ratio"], f"{name} final_excess_ratio") == pytest.approx(sum(tail) / len(tail))
+        assert results["runs"][name]["mean_over_seeds"]["per_seed_final_excess_ratio"] == [r["final_excess_ratio"]]
+        config = json.loads((runs / name / "seed0" / "config.json").read_text())
+        assert (config["recipe"], config["lr"], config["batch"], config["unroll"], config["fc_init_gain"],
+                config["obs_norm"]) == ("fast", 0.1, 8, 16, 1.0, "data"), (name, config)
     for policy in ("uniform", "behaviour"):
         _check_return(results["baselines"][policy], policy)
     _check_figures(runs, ["training.png"], since)
