@@ -94,6 +94,18 @@ def _styles():
     return itertools.cycle(["-", "--", "-.", ":"])
 
 
+def _log_axes(fig: Figure, ax, xlabel: str, ylabel: str, title: str) -> Figure:
+    """Finish a one-panel figure with a log y axis, labels, grid and legend."""
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
 def loss_figure(runs: Sequence[Run]) -> Figure:
     """Training next-frame BCE of every run against training samples (frames) seen, each a
     running average over the previous 4096 samples (thesis figures 5.1, 5.3, 5.7, 5.8)."""
@@ -102,14 +114,8 @@ def loss_figure(runs: Sequence[Run]) -> Figure:
     for run, style in zip(runs, _styles()):
         steps, loss = training_loss(run)
         ax.plot((steps + 1) * run.samples_per_step, running_mean(loss, run.loss_window), style, label=run.label)
-    ax.set_yscale("log")
-    ax.set_xlabel("training samples (frames)")
-    ax.set_ylabel("training BCE per pixel")
-    ax.set_title("Training loss (running average over 4096 samples)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    return fig
+    return _log_axes(fig, ax, "training samples (frames)", "training BCE per pixel",
+                     "Training loss (running average over 4096 samples)")
 
 
 _LAYER = re.compile(r"^(.*?)(\d+)(/kernel|/bias)$")
@@ -182,14 +188,8 @@ def excess_figure(runs: Sequence[Run]) -> Figure:
         if frames.size:
             ax.plot(frames, ratios, style, marker="o", ms=3, label=run.label)
     ax.axhline(1.0, color="black", lw=1, ls=":", label="copy last frame")
-    ax.set_yscale("log")
-    ax.set_xlabel("training samples (frames)")
-    ax.set_ylabel("held-out excess ratio")
-    ax.set_title("(BCE - entropy floor) / (copy-last BCE - entropy floor), held-out frames")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    return fig
+    return _log_axes(fig, ax, "training samples (frames)", "held-out excess ratio",
+                     "(BCE - entropy floor) / (copy-last BCE - entropy floor), held-out frames")
 
 
 def has_code_error(run: Run) -> bool:
@@ -216,14 +216,8 @@ def code_error_figure(runs: Sequence[Run]) -> Figure:
         if held:
             steps, values = np.array(held).T
             ax.plot(steps, values, "o--", color=color, label=f"{run.label}, held-out")
-    ax.set_yscale("log")
-    ax.set_xlabel("training step")
-    ax.set_ylabel("MSE(predicted code, next input code)")
-    ax.set_title("Code-prediction error (train: running average over 4096 samples)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    return fig
+    return _log_axes(fig, ax, "training step", "MSE(predicted code, next input code)",
+                     "Code-prediction error (train: running average over 4096 samples)")
 
 
 # ---------------------------------------------------------------- figures of a trained model
