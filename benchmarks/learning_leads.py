@@ -4,7 +4,8 @@ Each row is one `cdrl sweep` (`cdrl.runs.sweep.sweep_run`): its configurations (
 learning rates where a row sweeps them) train as one vmapped program on the built-in game's
 behaviour data (small preset), with held-out evaluations every `--eval-frames` training
 frames. The rows walk from the thesis's recipe to the `fast` recipe one change at a time
-(`path-*`), then try other leads on top of `fast` (`alt-*`). Every row trains the same
+(`path-*`), then try other leads on top of `fast` (`alt-*`) and take single changes back out
+of it (`ablate-*`). Every row trains the same
 number of frames, so curves compare per frame seen; seconds are in each configuration's
 metrics (fps) and in benchmarks/time_to_quality.py.
 
@@ -45,6 +46,8 @@ ROWS: dict[str, tuple[str, dict, dict]] = {
                                                  fc_init_gain=5.0), {}),
     "path-fast": ("+ T 8: four times the updates per frame (= the fast recipe)", dict(recipe="fast"), {}),
     "alt-lr": ("fast, with lr 1 or 3 (one program)", dict(recipe="fast"), dict(lr=(1.0, 3.0), seed=(0,))),
+    "ablate-std": ("fast without the standardised input (raw [0, 1] brightness)", dict(recipe="fast", obs_norm="none"), {}),
+    "ablate-gain": ("fast without the FC init gain (gain 1)", dict(recipe="fast", fc_init_gain=1.0), {}),
     "alt-adam": ("fast, with Adam lr 1e-4, 3e-4, 1e-3 (one program) instead of SGD",
                  dict(recipe="fast", optimizer="adam"), dict(lr=(1e-4, 3e-4, 1e-3), seed=(0,))),
     "alt-clip": ("fast, with the global gradient norm clipped at 1 or 0.3", dict(recipe="fast"),
