@@ -18,6 +18,10 @@ from cdrl.runs.sweep import GRID_FIELDS
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
 _TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations (bool: --x/--no-x)
+DISTRIBUTED_HELP = ("join the processes of a multi-process run with jax.distributed (every process runs this same "
+                    "command): from JAX_COORDINATOR_ADDRESS (host:port of process 0), JAX_NUM_PROCESSES and "
+                    "JAX_PROCESS_ID, or a cluster JAX detects (SLURM's srun); the {what} spread over every device "
+                    "of every process (--devices 0) unless --devices says otherwise; process 0 prints")
 
 
 def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...] = (), skip: tuple[str, ...] = ()) -> None:
@@ -50,11 +54,25 @@ def _options(args, skip: tuple[str, ...] = ()) -> dict:
             if hasattr(args, f.name) and f.name not in skip}
 
 
+def _distributed(args, options: dict) -> bool:
+    """`--distributed`: join the run's processes (`cdrl.runs.distributed.initialize`, before JAX
+    starts its backends); the run then spreads over every device of every process unless
+    `--devices` says otherwise. Returns whether this process writes what the run prints."""
+    if not args.distributed:
+        return True
+    from cdrl.runs.distributed import initialize
+
+    joined = initialize()
+    options.setdefault("devices", 0)
+    return joined["process"] == 0
+
+
 def _cmd_train(args) -> int:
     from cdrl.runs.train import train_run
 
     options = _options(args)
     try:
+        prints = _distributed(args, options)
         if args.resume:
             summary = train_run(None, args.resume, resume=True, overrides=options)
         else:
@@ -62,7 +80,8 @@ def _cmd_train(args) -> int:
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl train: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(summary))
+    if prints:
+        print(json.dumps(summary))
     return 0
 
 
@@ -72,14 +91,18 @@ def _cmd_sweep(args) -> int:
 
     grid = {name: tuple(getattr(args, name)) for name in GRID_FIELDS if hasattr(args, name)}
     run_dir = args.resume or args.run_dir
+    options = _options(args) if args.resume else _options(args, skip=GRID_FIELDS)
     try:
+        prints = _distributed(args, options)
         if args.resume:
-            rows = resume_sweep(args.resume, overrides=_options(args))
+            rows = resume_sweep(args.resume, overrides=options)
         else:
-            rows = sweep_run(RunConfig(**_options(args, skip=GRID_FIELDS)), Grid(**grid), args.run_dir)
+            rows = sweep_run(RunConfig(**options), Grid(**grid), args.run_dir)
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl sweep: {exc}", file=sys.stderr)
         return 2
+    if not prints:
+        return 0
     plot_sweep(run_dir)
     print(format_results(rows))
     print(json.dumps(json.loads((Path(run_dir) / "results.json").read_text())))
@@ -191,6 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--run-dir", default="runs/run", help="directory of the run's outputs (default: runs/run)")
     train.add_argument("--resume", metavar="RUN_DIR", default=None,
                        help="continue the run in RUN_DIR from its last good checkpoint (default: none)")
+    train.add_argument("--distributed", action="store_true", help=DISTRIBUTED_HELP.format(what="B streams"))
     _add_config_options(train)
     train.set_defaults(func=_cmd_train)
 
@@ -198,7 +222,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--run-dir", default="runs/sweep", help="directory of the sweep's runs and table (default: runs/sweep)")
     sw.add_argument("--resume", metavar="SWEEP_DIR", default=None,
                     help="continue the sweep in SWEEP_DIR from its last complete checkpoint; only --steps, "
-                         "--checkpoint-every, --keep-checkpoints, --eval-every, --eval-episodes may change (default: none)")
+                         "--checkpoint-every, --keep-checkpoints, --eval-every, --eval-episodes, --devices, "
+                         "--tensorboard may change (default: none)")
+    sw.add_argument("--distributed", action="store_true", help=DISTRIBUTED_HELP.format(what="configurations"))
     _add_config_options(sw, several=GRID_FIELDS)
     sw.set_defaults(func=_cmd_sweep)
 

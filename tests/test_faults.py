@@ -498,7 +498,7 @@ BAD_CLI = {
                                 "sweep directory {t}/nowhere does not exist"),
     "sweep resume of a non-sweep": (lambda t: ["sweep", "--resume", str(t)], "{t} is not a sweep directory"),
     "sweep resume changing the grid": (lambda t: ["sweep", "--resume", str(_fake_sweep(t)), "--lr", "0.5"],
-                                       "--lr cannot change (only checkpoint_every, eval_episodes"),
+                                       "--lr cannot change (only checkpoint_every, devices, eval_episodes"),
     "eval of nothing": (lambda t: ["eval", str(t / "nowhere")], "run directory {t}/nowhere does not exist"),
     "collect over another data set": (lambda t: ["collect", str(_dataset(t / "data"))],
                                       "was written by a different collection"),

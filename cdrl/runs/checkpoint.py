@@ -3,6 +3,12 @@ parameters, optimiser state, every stream's carry, step; or an online run's `Onl
 plus JSON metadata (the run config, the data cursor, the
 PRNG key). Orbax writes each checkpoint to a temporary directory and renames it when
 complete, so an interrupted save never replaces a good checkpoint; the last k are kept.
+
+With several processes (`jax.distributed`) a save and a restore are collective: every process
+calls them with the same global arrays, each writes its shards (orbax's multi-process
+checkpointing), and the `primary` process writes the metadata and the JSON (process 0 for a
+data-parallel run; in a sweep, the process that holds the configuration, which alone knows
+its data cursor).
 """
 from __future__ import annotations
 
@@ -18,6 +24,14 @@ import orbax.checkpoint as ocp
 logging.getLogger("absl").setLevel(logging.WARNING)
 
 
+def _with_sharding(leaf) -> jax.ShapeDtypeStruct:
+    struct = ocp.utils.to_shape_dtype_struct(leaf)
+    if getattr(struct, "sharding", None) is None:
+        struct = jax.ShapeDtypeStruct(struct.shape, struct.dtype,
+                                      sharding=jax.sharding.SingleDeviceSharding(jax.local_devices()[0]))
+    return struct
+
+
 class CheckpointError(RuntimeError):
     """No usable checkpoint, or one from an incompatible configuration."""
 
@@ -25,10 +39,22 @@ class CheckpointError(RuntimeError):
 class Checkpoints:
     """Save and restore training states (any pytree) and their metadata under `directory`."""
 
-    def __init__(self, directory: str | Path, keep: int = 3):
+    def __init__(self, directory: str | Path, keep: int = 3, primary: int = 0):
         self.directory = Path(directory).absolute()
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
-        self.manager = ocp.CheckpointManager(self.directory, options=options)
+        self.primary = primary
+        if primary == 0:
+            options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
+            self.manager = ocp.CheckpointManager(self.directory, options=options)
+            return
+        processes = ocp.options.MultiprocessingOptions(primary_host=primary)
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False,
+                                               multiprocessing_options=processes)
+        handlers = {"state": ocp.StandardCheckpointHandler(multiprocessing_options=processes),
+                    "meta": ocp.JsonCheckpointHandler(multiprocessing_options=processes)}
+        self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handlers)
+
+    def _is_primary(self) -> bool:
+        return jax.process_index() == self.primary
 
     def steps(self) -> list[int]:
         return sorted(self.manager.all_steps())
@@ -65,6 +91,8 @@ class Checkpoints:
     def _remove_temporary(self, step: int) -> None:
         """Remove the temporary directory of an unfinished save of `step` (orbax writes a
         checkpoint to '<step>.orbax-checkpoint-tmp*' and renames it when complete)."""
+        if not self._is_primary():
+            return
         for path in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):
             shutil.rmtree(path, ignore_errors=True)
 
@@ -73,8 +101,9 @@ class Checkpoints:
         return restored["meta"]
 
     def restore(self, step: int, like):
-        """The state saved at `step`, shaped like `like` (an abstract or concrete state)."""
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+        """The state saved at `step`, shaped like `like` (an abstract or concrete state), on
+        the shardings of `like` (this process's first device for a leaf without one)."""
+        abstract = jax.tree.map(_with_sharding, like)
         restored = self.manager.restore(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore()),

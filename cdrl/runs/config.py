@@ -84,6 +84,8 @@ class RunConfig:
     steps: int = _opt(1000, "training steps (chunks)")
     seed: int = _opt(0, "seed of the parameters and the data order")
     diverge_threshold: float = _opt(1e3, "a norm ratio ||grad||/||param|| above this stops the run")
+    devices: int = _opt(1, "devices to spread over (0: every device of every process): a run's B streams "
+                           "(data parallel; B a multiple of it), or a sweep's configurations")
     checkpoint_every: int = _opt(200, "steps between checkpoints")
     keep_checkpoints: int = _opt(3, "how many checkpoints to keep")
     eval_every: int = _opt(250, "steps between held-out evaluations (0: only at the end)")
@@ -120,7 +122,7 @@ class RunConfig:
         if self.lr <= 0 or not 0 <= self.momentum < 1 or not 0 <= self.b2 < 1:
             raise ValueError(f"need lr > 0, 0 <= momentum < 1 and 0 <= b2 < 1; got lr={self.lr}, "
                              f"momentum={self.momentum}, b2={self.b2}")
-        for name in ("weight_decay", "grad_clip", "lr_warmup", "lr_decay_steps"):
+        for name in ("weight_decay", "grad_clip", "lr_warmup", "lr_decay_steps", "devices"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.diverge_threshold > 0:
@@ -156,4 +158,5 @@ def saved_config(saved: dict) -> RunConfig:
 
 
 # Options that may change when a run is resumed (they do not change what the steps compute).
-RESUMABLE = {"steps", "checkpoint_every", "keep_checkpoints", "eval_every", "eval_episodes", "tensorboard"}
+# `devices` lays the same computation out over devices (equal up to the order of float sums).
+RESUMABLE = {"steps", "checkpoint_every", "keep_checkpoints", "eval_every", "eval_episodes", "tensorboard", "devices"}

@@ -155,20 +155,23 @@ class RunDir:
             raise FileExistsError(f"{self.path} already holds a run; use --resume to continue it or pick another --run-dir")
         return cfg
 
-    def checkpoints(self, keep: int = 3) -> Checkpoints:
-        return Checkpoints(self.checkpoint_dir, keep=keep)
+    def checkpoints(self, keep: int = 3, primary: int = 0) -> Checkpoints:
+        """The run's checkpoints; `primary`: the process that writes their metadata."""
+        return Checkpoints(self.checkpoint_dir, keep=keep, primary=primary)
 
-    def open(self, cfg: RunConfig, state, resume: bool) -> Opened:
+    def open(self, cfg: RunConfig, state, resume: bool, write: bool = True) -> Opened:
         """Write the config and, when resuming, restore `state` from the last good checkpoint
-        (an older one if the newest is corrupt) and cut the logs back to it."""
+        (an older one if the newest is corrupt) and cut the logs back to it. With several
+        processes every one restores and only the one that writes (`write`) touches files."""
         ckpts = self.checkpoints(cfg.keep_checkpoints)
         start, meta = 0, None
         if resume and ckpts.steps():
             state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
-            for w in warnings:
+            for w in warnings if write else ():
                 print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
             start = int(meta["step"])
-        self.write_config(cfg)
-        self.metrics.truncate(start)
-        self.evals.truncate(start + 1)
+        if write:
+            self.write_config(cfg)
+            self.metrics.truncate(start)
+            self.evals.truncate(start + 1)
         return Opened(state=state, start=start, meta=meta, checkpoints=ckpts)

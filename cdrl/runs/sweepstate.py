@@ -9,8 +9,16 @@ metrics, saves each live configuration's checkpoint in its own run directory (st
 seed's data-stream cursor, all at the same step), and only then rewrites `progress.json`
 (atomically). A kill between two configurations' saves leaves `progress.json` at the step
 before, whose checkpoints every configuration still has: a sweep keeps at least two
-(`SWEEP_KEEP`). A configuration that diverged keeps the checkpoint of its last good state
-and stays stopped when the sweep resumes.
+(`SWEEP_KEEP`). A configuration that diverged keeps the checkpoint of its last good state (saved at
+the next checkpoint step; the state stays frozen until then) and stays stopped when the sweep
+resumes.
+
+With several processes (`cdrl sweep --distributed`) every checkpoint is a collective orbax
+save: orbax writes global arrays only (it refuses arrays that live in one process of several,
+and writes numpy arrays from process 0 alone), so each configuration's state is gathered to
+every device, the processes write it together, and the process that holds the configuration
+writes its metadata. Progress and divergences are gathered to process 0, which alone writes
+`progress.json`, after every process's checkpoints are complete.
 """
 from __future__ import annotations
 
@@ -19,9 +27,14 @@ import json
 from pathlib import Path
 from typing import Sequence
 
+import jax
+
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
 from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
+from cdrl.runs.distributed import allgather_json
+from cdrl.runs.grid import take
 from cdrl.runs.rundir import RunDir, atomic_write_text
+from cdrl.training.parallel import ConfigAxis, local_copy
 
 SWEEP_FILE = "sweep.json"
 PROGRESS_FILE = "progress.json"
@@ -72,15 +85,50 @@ def read_progress(run_dir: Path, configs: int) -> dict:
     return progress
 
 
+def gather_progress(live: dict[int, bool], diverged: dict[int, dict], configs: int) -> tuple[list[bool], dict]:
+    """Every process's live mask and divergences of the configurations it holds, merged:
+    (which of the `configs` configurations still train, how each diverged one diverged)."""
+    alive, every_divergence = [False] * configs, {}
+    for part in allgather_json({"live": sorted(live.items()), "diverged": sorted(diverged.items())}):
+        for i, is_live in part["live"]:
+            alive[int(i)] = bool(is_live)
+        every_divergence.update({int(i): d for i, d in part["diverged"]})
+    return alive, every_divergence
+
+
+def save_configs(checkpoints: Sequence[Checkpoints], saves: Sequence[tuple[int, int, dict]], states,
+                 axis: ConfigAxis) -> None:
+    """Checkpoint the configurations `saves` names (index, step, metadata) of this process's
+    block out of the stacked global `states`. With several processes, collective (see the
+    module docstring): every process learns which configurations are saved and takes part."""
+    if jax.process_count() == 1:
+        block = axis.to_local(states)
+        for i, step, meta in saves:
+            checkpoints[i].save(step, take(block, axis.local.index(i)), meta)
+        return
+    metas = {i: meta for i, _, meta in saves}
+    for i, step in sorted(tuple(pair) for part in allgather_json([[i, step] for i, step, _ in saves]) for pair in part):
+        checkpoints[i].save(step, axis.replicated_one(states, i), metas.get(i, {}))
+
+
 def restore_configs(runs: Sequence[RunDir], checkpoints: Sequence[Checkpoints], cfgs: Sequence[RunConfig],
-                    likes: Sequence, progress: dict) -> tuple[list, dict[int, dict]]:
+                    like, progress: dict, axis: ConfigAxis) -> tuple[dict[int, object], dict[int, dict]]:
     """Each configuration's state from its own run directory: a live one's checkpoint at the
-    progress step, a diverged one's last good state (its newest checkpoint). Returns the
-    states and, per seed, the data-stream cursor (from a live configuration of that seed
-    where there is one). The logs are cut back to the progress step."""
+    progress step, a diverged one's last good state (its newest checkpoint). `like` is one
+    configuration's state. Returns the states of the configurations this process holds (by
+    index) and, per seed, the data-stream cursor (from a live configuration of that seed
+    where there is one). Their logs are cut back to the progress step. With several processes
+    every process restores every configuration (a restore of global arrays is collective)."""
     step = int(progress["step"])
-    states, cursors, spare = [], {}, {}
-    for i, (run, ckpts, cfg, like) in enumerate(zip(runs, checkpoints, cfgs, likes)):
+    several = jax.process_count() > 1
+    if several:
+        replicated = jax.sharding.NamedSharding(axis.mesh, jax.sharding.PartitionSpec())
+        like = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated), like)
+    mine = {i for i in axis.local if i < len(cfgs)}
+    states, cursors, spare = {}, {}, {}
+    for i, (run, ckpts, cfg) in enumerate(zip(runs, checkpoints, cfgs)):
+        if i not in mine and not several:
+            continue
         steps = ckpts.steps()
         alive = progress["alive"][i]
         if alive and step not in steps:
@@ -89,8 +137,9 @@ def restore_configs(runs: Sequence[RunDir], checkpoints: Sequence[Checkpoints], 
         if not alive and not steps:
             raise CheckpointError(f"{ckpts.directory} holds no checkpoint of the diverged configuration")
         state, meta = ckpts.restore(step if alive else max(steps), like)
-        states.append(state)
         (cursors if alive else spare).setdefault(cfg.seed, meta["stream"])
-        run.metrics.truncate(step)
-        run.evals.truncate(step + 1)
+        if i in mine:
+            states[i] = local_copy(state) if several else state
+            run.metrics.truncate(step)
+            run.evals.truncate(step + 1)
     return states, {**spare, **cursors}

@@ -1,12 +1,16 @@
 """`train_run`: start or resume the run of a config in a run directory. Controller variants
 train online against the game (`cdrl.runs.online`), the others offline on recorded
-episodes (`cdrl.runs.offline`)."""
+episodes (`cdrl.runs.offline`), on one device or data parallel over several, which may belong
+to several processes (`cdrl train --distributed`: process 0 holds the lock and writes the
+run's files)."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
+from cdrl.runs.distributed import all_or_none, is_primary
 from cdrl.runs.offline import offline_train_run
 from cdrl.runs.online import online_train_run
 from cdrl.runs.rundir import RunDir
@@ -19,9 +23,19 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
     step and the parameter group, after saving the last good state. The run directory is
     locked for the whole run: a second writer gets `LockedError` naming this process's pid."""
     run = RunDir(run_dir)
-    if resume:
-        run.config_for(cfg, resume, overrides)  # a missing run is an error before anything is created
-    with run.lock():
-        cfg = run.config_for(cfg, resume, overrides)
-        launch = online_train_run if make_variant(cfg.variant, cfg.arch).has_controller else offline_train_run
-        return launch(cfg, run, resume, progress)
+    if resume:  # a missing run is an error before anything is created
+        all_or_none(lambda: run.config_for(cfg, resume, overrides), "checking the run")
+
+    def lock() -> contextlib.ExitStack:
+        held = contextlib.ExitStack()
+        if is_primary():
+            held.enter_context(run.lock())
+        return held
+
+    with all_or_none(lock, "locking the run directory"):  # every process knows before any writes
+        resolved = all_or_none(lambda: run.config_for(cfg, resume, overrides), "reading the run's config")
+        online = make_variant(resolved.variant, resolved.arch).has_controller
+        if online and resolved.devices != 1:
+            raise ValueError(f"devices={resolved.devices}: controller variants train online on one device "
+                             "(data-parallel training covers the offline variants); use --devices 1")
+        return (online_train_run if online else offline_train_run)(resolved, run, resume, progress)

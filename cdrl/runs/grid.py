@@ -1,0 +1,177 @@
+"""A grid of configurations trained as one program: the grid, the stacked train step, the host
+loop (`cdrl.runs.sweep` adds the run directories, `cdrl.runs.sweepstate` the checkpoints).
+
+The train step is `vmap`-ed over a leading config axis of the state, the traced `HParams` and
+the data (each seed has its own parameter init and data order, exactly as `cdrl train --seed`
+would), and jitted once. A configuration that diverges keeps its last good state and stops
+there while the others go on.
+
+With `devices` other than 1 the config axis is laid out over a device mesh
+(`cdrl.training.parallel.ConfigAxis`): the configurations are padded to a multiple of the device
+count with copies of the last one (trained, never reported), each device runs the same vmapped
+step on its block under `jax.shard_map`, still one program jitted once, and each process feeds
+and reads only the block it holds.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import time
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cdrl.data.stream import Chunk, ChunkStream
+from cdrl.models.base import Variant
+from cdrl.runs.config import RunConfig
+from cdrl.training.loop import enter_stage, stage_schedule
+from cdrl.training.optim import HParams, init_opt_state
+from cdrl.training.parallel import ConfigAxis, shard_configs
+from cdrl.training.step import TrainState, init_params, train_step_fn
+
+# The options a sweep may vary: every one is a traced number of the train step (or the seed,
+# which sets the initialisation and the data order), so the whole grid is one program.
+GRID_FIELDS = ("lr", "momentum", "b2", "weight_decay", "grad_clip", "lr_warmup", "seed", "diverge_threshold")
+# Short names in a configuration's directory name; the first four always appear.
+_NAME_PARTS = {"lr": "lr", "momentum": "mom", "seed": "seed", "diverge_threshold": "thr", "b2": "b2",
+               "weight_decay": "wd", "grad_clip": "clip", "lr_warmup": "warm"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """The values of each swept option (empty: the base config's value); the sweep trains
+    their cartesian product."""
+
+    lr: tuple[float, ...] = ()
+    momentum: tuple[float, ...] = ()
+    b2: tuple[float, ...] = ()
+    weight_decay: tuple[float, ...] = ()
+    grad_clip: tuple[float, ...] = ()
+    lr_warmup: tuple[int, ...] = ()
+    seed: tuple[int, ...] = ()
+    diverge_threshold: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        for name in GRID_FIELDS:
+            values = tuple(getattr(self, name))
+            if len(set(values)) != len(values):
+                raise ValueError(f"the grid repeats a value of {name}: {values}")
+            object.__setattr__(self, name, values)
+
+    def configs(self, base: RunConfig) -> list[RunConfig]:
+        """One `RunConfig` per grid point, in `itertools.product` order of the fields."""
+        axes = [getattr(self, name) or (getattr(base, name),) for name in GRID_FIELDS]
+        return [dataclasses.replace(base, **dict(zip(GRID_FIELDS, p))) for p in itertools.product(*axes)]
+
+    def name(self, cfg: RunConfig) -> str:
+        """The directory name of `cfg`'s configuration: lr, momentum, seed and threshold, and
+        every other option this grid sets."""
+        shown = ["lr", "momentum", "seed", "diverge_threshold"] + [
+            n for n in GRID_FIELDS if getattr(self, n) and n not in ("lr", "momentum", "seed", "diverge_threshold")]
+        return "-".join(f"{_NAME_PARTS[n]}{getattr(cfg, n):g}" for n in shown)
+
+
+def stack(trees: Sequence) -> object:
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def take(tree, i: int):
+    """Configuration `i` of a stacked pytree."""
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def sweep_step_fn(variant: Variant, states: TrainState, hps: HParams, alive: jax.Array, chunks: Chunk):
+    """One train step of every configuration; a configuration that is not `alive` (it
+    diverged earlier) keeps its state. Returns (states, alive, metrics with a config axis)."""
+    new, metrics = jax.vmap(functools.partial(train_step_fn, variant))(states, hps, chunks)
+
+    def keep(n, o):
+        return jnp.where(alive.reshape(alive.shape + (1,) * (n.ndim - 1)), n, o)
+
+    states = jax.tree.map(keep, new, states)
+    return states, alive & ~metrics["diverged"], metrics
+
+
+sweep_step = jax.jit(sweep_step_fn, static_argnums=0, donate_argnums=1)
+
+
+@functools.lru_cache(maxsize=8)
+def sharded_sweep_step(variant: Variant, mesh):
+    """`sweep_step` with the config axis over `mesh`: every device steps its block."""
+    return jax.jit(shard_configs(functools.partial(sweep_step_fn, variant), mesh), donate_argnums=0)
+
+
+def init_sweep(variant: Variant, cfgs: Sequence[RunConfig]) -> tuple[TrainState, HParams]:
+    """Stacked initial states and hyper-parameters, each configuration exactly as
+    `cdrl train` would start it (parameters from `PRNGKey(seed)`)."""
+    hps = stack([c.hparams(variant) for c in cfgs])
+    keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
+    params = init_params(variant, keys)
+    carry = variant.init_carry(cfgs[0].batch)
+    states = TrainState(
+        params=params,
+        opt_state=jax.vmap(functools.partial(init_opt_state, hps.opt))(params),
+        carry=jax.tree.map(lambda x: jnp.broadcast_to(x, (len(cfgs),) + x.shape), carry),
+        step=jnp.zeros((len(cfgs),), jnp.int32),
+    )
+    return states, hps
+
+
+def held_configs(cfgs: Sequence[RunConfig], axis: ConfigAxis) -> list[RunConfig]:
+    """The configurations of this process's block, padding (a copy of the last) included."""
+    return [cfgs[min(i, len(cfgs) - 1)] for i in axis.local]
+
+
+def make_streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], Sequence]) -> dict:
+    """One data stream per seed of `cfgs`."""
+    streams = {}
+    for c in cfgs:
+        if c.seed not in streams:
+            streams[c.seed] = ChunkStream(train_eps_of(c), c.batch, c.unroll, image_size=c.arch.image_size,
+                                          action_dim=c.arch.action_dim, seed=c.seed)
+    return streams
+
+
+StepCallback = Callable[[int, dict, float, TrainState], None]
+
+
+def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, ChunkStream], steps: int,
+             callback: StepCallback | None = None, start: int = 0,
+             resumed: tuple[TrainState, np.ndarray] | None = None, axis: ConfigAxis | None = None):
+    """The host loop of a sweep: `steps` train steps of every configuration. `axis` lays the
+    configurations out over devices (default: one device); this process holds the block
+    `axis.local` and `streams` maps each seed of that block to its data stream.
+    `callback(step, metrics, seconds, states)` sees every step's metrics (numpy, this block's
+    config axis first, `alive_before` added) and the stacked global states after it.
+    `resumed` (this block's stacked states and alive mask) continues a sweep from step `start`.
+    Returns (this block's final stacked states, its alive mask)."""
+    axis = axis or ConfigAxis(None, len(cfgs))
+    held = held_configs(cfgs, axis)
+    real = np.array([i < len(cfgs) for i in axis.local])
+    states, hps = init_sweep(variant, held)
+    alive = real
+    if resumed is not None:
+        states, alive = resumed[0], np.asarray(resumed[1], bool) & real
+    schedule = stage_schedule(variant, steps)
+    states, hps = enter_stage(variant, schedule, start, states, hps, resumed=start > 0)
+    step_fn = functools.partial(sweep_step, variant) if axis.mesh is None else sharded_sweep_step(variant, axis.mesh)
+    states, placed_hps, placed_alive = axis.to_global(states), axis.to_global(hps), axis.to_global(jnp.asarray(alive))
+    switches = {first for first, _ in schedule}
+    for step in range(start, steps):
+        if step > start and step in switches:  # a new stage: its loss weights, fresh momentum
+            local, hps = enter_stage(variant, schedule, step, axis.to_local(states), hps)
+            states, placed_hps = axis.to_global(local), axis.to_global(hps)
+        chunk_of = {seed: stream.next_chunk() for seed, stream in streams.items()}
+        chunks = axis.to_global(jax.tree.map(lambda *xs: np.stack(xs), *[chunk_of[c.seed] for c in held]))
+        t0 = time.perf_counter()
+        states, placed_alive, metrics = step_fn(states, placed_hps, placed_alive, chunks)
+        metrics = jax.device_get(axis.to_local(metrics))
+        seconds = time.perf_counter() - t0
+        metrics["alive_before"] = alive
+        alive = alive & ~np.asarray(metrics["diverged"])
+        if callback is not None:
+            callback(step, metrics, seconds, states)
+    return axis.to_local(states), alive
