@@ -70,6 +70,7 @@ def _parse(argv):
     p.add_argument("--quick", action="store_true", help="tiny preset, few episodes: a smoke run")
     p.add_argument("--out", default=None, help="also write the JSON line to this file")
     p.add_argument("--figure", default=None, help="write the curves (mean over seeds, min-max band) here")
+    p.add_argument("--replot", default=None, metavar="JSON", help="only redraw --figure from a result file")
     return p.parse_args(argv)
 
 
@@ -123,41 +124,61 @@ def run_row(name: str, args) -> dict:
 
 
 def figure(result: dict, path: Path) -> None:
+    """Two panels: the path from the thesis's recipe to fast, then the alternatives and the
+    ablations (with the fast curve repeated for reference). Mean over seeds, min-max band; a
+    configuration that diverged is left out of its curve and named in the legend."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(10.0, 6.0))
-    ax = fig.add_subplot()
-    i = 0
-    for row in result["rows"]:
-        by_setting: dict[str, list[dict]] = {}
-        for c in row["configs"]:
-            key = ", ".join(f"{k} {c[k]:g}" for k in ("lr", "grad_clip") if k in c and row["grid"].get(k))
-            by_setting.setdefault(key, []).append(c)
-        for key, cs in by_setting.items():
-            n = min(len(c["frames"]) for c in cs)
-            if n == 0:
-                continue
-            x = np.asarray(cs[0]["frames"][:n])
-            ys = np.array([c["ratio"][:n] for c in cs])
-            label = row["row"] + (f" ({key})" if key else "")
-            (line,) = ax.plot(x, ys.mean(0), color=f"C{i % 10}", ls="-" if i < 10 else "--", label=label)
-            if len(cs) > 1:
-                ax.fill_between(x, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.15)
-            i += 1
-    ax.axhline(1.0, color="black", lw=1, ls=":")
-    ax.set_yscale("log")
-    ax.set_xlabel("training frames")
-    ax.set_ylabel("held-out excess ratio (1: copy last frame)")
-    ax.set_title(f"main, {result['preset']} preset, built-in game ({result['episodes']} episodes); "
-                 f"mean over seeds {result['seeds']}, band min-max")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize="x-small", ncols=2)
+    rows = {row["row"]: row for row in result["rows"]}
+    panels = [("the path from the thesis's recipe to fast", [n for n in rows if n.startswith("path-")]),
+              ("on top of fast: alternatives and ablations",
+               (["path-fast"] if "path-fast" in rows else []) + [n for n in rows if not n.startswith("path-")])]
+    panels = [(title, names) for title, names in panels if names]
+    fig = Figure(figsize=(7.0 * len(panels), 6.0))
+    for k, (title, names) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), k + 1)
+        i = 0
+        for name in names:
+            row = rows[name]
+            by_setting: dict[str, list[dict]] = {}
+            for c in row["configs"]:
+                key = ", ".join(f"{g} {c[g]:g}" for g in ("lr", "grad_clip") if g in c and row["grid"].get(g))
+                by_setting.setdefault(key, []).append(c)
+            for key, cs in by_setting.items():
+                label = name + (f" ({key})" if key else "")
+                live = [c for c in cs if c["diverged_at"] is None]
+                if len(live) < len(cs):
+                    label += ", diverged at step " + ", ".join(str(c["diverged_at"]) for c in cs if c not in live)
+                n = min((len(c["frames"]) for c in live), default=0)
+                style = dict(color=f"C{i % 10}", ls="-" if i < 10 else "--")
+                i += 1
+                if n == 0:
+                    ax.plot([], [], label=label, **style)
+                    continue
+                x = np.asarray(live[0]["frames"][:n])
+                ys = np.array([c["ratio"][:n] for c in live])
+                ax.plot(x, ys.mean(0), label=label + (f" [{len(live)} seeds]" if len(live) > 1 else ""), **style)
+                if len(live) > 1:
+                    ax.fill_between(x, ys.min(0), ys.max(0), color=style["color"], alpha=0.15)
+        ax.axhline(1.0, color="black", lw=1, ls=":")
+        ax.set_yscale("log")
+        ax.set_ylim(0.5, 3.0)
+        ax.set_xlabel("training frames")
+        ax.set_ylabel("held-out excess ratio (1: copy last frame)")
+        ax.set_title(title)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize="x-small")
+    fig.suptitle(f"main, {result['preset']} preset, built-in game ({result['episodes']} episodes of at most "
+                 f"{result['episode_steps']} steps); mean over seeds, band min-max")
     fig.tight_layout()
     save_figure(fig, path)
 
 
 def main(argv=None) -> int:
     args = _parse(argv)
+    if args.replot:
+        figure(json.loads(Path(args.replot).read_text()), Path(args.figure))
+        return 0
     if args.quick:
         args.frames, args.eval_frames, args.episodes, args.episode_steps = 256, 128, 6, 30
     result = {"benchmark": "learning_leads", "variant": "main", "preset": "tiny" if args.quick else "small",
