@@ -13,6 +13,7 @@ step it resumes from, so TensorBoard shows each step once. View with
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 
 import jax
@@ -74,8 +75,10 @@ class TBLog:
         if enabled:
             from tensorboardX import SummaryWriter
 
+            # The suffix keeps two writers of one second and host (a run and its quick resume)
+            # from sharing, and so overwriting, one event file.
             self.writer = SummaryWriter(logdir=str(directory), purge_step=start if start > 0 else None,
-                                        flush_secs=30)
+                                        flush_secs=30, filename_suffix=f".{os.getpid()}.from{start}")
 
     def _scalars(self, step: int, values: dict[str, float]) -> None:
         for tag, value in values.items():
