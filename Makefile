@@ -15,13 +15,13 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # The main job: collect observation data from the built-in game (behaviour switching), train
-# the main model (small preset, about 10 minutes on 2 cores), evaluate it and draw the figures.
-# A second `make demo` resumes the run (and finds it finished) instead of starting over.
+# the thesis-sized main model with the default recipe (fast), evaluate it and draw the figures,
+# about 10 minutes on 2 cores. A second `make demo` resumes the run (and finds it finished).
 DEMO := runs/demo
 demo: $(STAMP)
 	if [ -f $(DEMO)/config.json ]; then $(VENV)/bin/cdrl train --resume $(DEMO); \
-	else $(VENV)/bin/cdrl train --run-dir $(DEMO) --variant main --preset small --episodes 60 \
-		--episode-steps 200 --batch 4 --unroll 32 --lr 0.5 --steps 1500 --eval-every 500; fi
+	else $(VENV)/bin/cdrl train --run-dir $(DEMO) --variant main --preset thesis --episodes 60 \
+		--episode-steps 200 --steps 1000 --eval-every 250 --checkpoint-every 250; fi
 	$(VENV)/bin/cdrl eval $(DEMO)
 	$(VENV)/bin/cdrl plot $(DEMO)
 
