@@ -33,6 +33,7 @@ from cdrl.analysis.plots import held_out_ratios, save_figure
 from cdrl.analysis.report import load_run
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, sweep_run
+from common import emit
 
 # name -> (what changes, RunConfig options, grid); a grid without seeds takes --seeds, the
 # alternatives on top of `fast` take seed 0 only (a lead, not a verdict).
@@ -190,10 +191,7 @@ def main(argv=None) -> int:
     result["load_avg_end"] = os.getloadavg()[0]
     if args.figure:
         figure(result, Path(args.figure))
-    line = json.dumps(result)
-    if args.out:
-        Path(args.out).write_text(line + "\n")
-    print(line)
+    emit(result, args.out)
     return 0
 
 

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common import emit, spread
+
 ROOT = Path(__file__).resolve().parent.parent
 SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false"  # (`intra_op_parallelism_threads=1` is no XLA flag: it ends the parsing of XLA_FLAGS)
 TARGET = 1.8
@@ -45,10 +47,6 @@ LAYOUTS = {  # name -> (processes, cores of each process, host devices per proce
     "2proc_1core": (2, ["0", "1"], 1),
     "1proc_2core": (1, ["0,1"], 2),
 }
-
-
-def spread(values) -> dict:
-    return {"min": float(np.min(values)), "median": float(np.median(values)), "max": float(np.max(values))}
 
 
 def worker(setup: dict) -> None:
@@ -166,11 +164,7 @@ def main(argv=None) -> int:
           f"{result['efficiency_2proc_1core']:.0%}), 1 process x 2 cores: x{result['speedup_1proc_2core']:.2f}; "
           f"target x{TARGET} {'met' if result['target_met'] else 'missed'} (median); "
           f"load {load_avg_start:.2f} -> {result['load_avg_end']:.2f}")
-    line = json.dumps(result)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(line + "\n")
-    print(line)
+    emit(result, args.out)
     return 0
 
 

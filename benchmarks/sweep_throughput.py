@@ -30,7 +30,6 @@ committed results go to benchmarks/results/sweep_throughput.json).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -45,6 +44,7 @@ from cdrl.models.arch import preset
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, init_sweep, sweep_step, take
 from cdrl.training.step import train_step
+from common import emit, spread
 
 
 def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
@@ -58,11 +58,6 @@ def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
 # The target speed-up of a sweep over running its configurations one after another, by number
 # of configurations (README "Sweeps": 4x for an 8-config sweep).
 TARGETS = {8: 4.0}
-
-
-def spread(values) -> dict:
-    """min / median / max of a list of per-repeat figures."""
-    return {"min": float(np.min(values)), "median": float(np.median(values)), "max": float(np.max(values))}
 
 
 def main(argv=None) -> int:
@@ -160,11 +155,7 @@ def main(argv=None) -> int:
           f"[min {r_spread['min']:.2f}, max {r_spread['max']:.2f}] over {len(ratios)} repeats, {verdict} "
           f"(compile {compile_single:.1f} s single, {compile_sweep:.1f} s sweep; "
           f"load {load_avg_start:.2f} -> {result['load_avg_end']:.2f})")
-    line = json.dumps(result)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(line + "\n")
-    print(line)
+    emit(result, args.out)
     return 0
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import sys
@@ -42,6 +41,7 @@ from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sources import load_episodes, with_obs_norm
 from cdrl.training.step import init_state, train_step
+from common import emit
 
 ROWS = {
     "small-thesis": dict(preset="small", recipe="thesis", framework="cdrl"),
@@ -208,10 +208,7 @@ def main(argv=None) -> int:
         a, b = rows["small-fast"].get("to_1"), rows["small-fast-torch"].get("to_1")
         if a.get("reached", True) and b.get("reached", True):
             result["cdrl_over_torch_seconds_to_1"] = a["seconds"] / b["seconds"]
-    line = json.dumps(result)
-    if args.out:
-        Path(args.out).write_text(line + "\n")
-    print(line)
+    emit(result, args.out)
     return 0
 
 

@@ -85,6 +85,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from common import emit, spread  # noqa: E402
+
 MiB = 1024 * 1024
 # Building the initial weights is set-up, not measured: compile it with LLVM optimisation
 # off (the truncated-normal initialisers otherwise take ~30 s to compile on 2 cores).
@@ -100,11 +102,6 @@ def target_for(preset_name: str, variant: str, batch: int) -> float | None:
     if preset_name != TARGET_PRESET:
         return None
     return TARGETS.get((variant, batch), TARGETS.get((variant, None)))
-
-
-def spread(values) -> dict:
-    """min / median / max of per-repeat figures."""
-    return {"min": min(values), "median": statistics.median(values), "max": max(values)}
 
 
 def ratio_fields(ratios: list[float], target: float | None) -> dict:
@@ -546,11 +543,7 @@ def main() -> None:
                                                                    for (v, b), t in TARGETS.items()},
                       "compile_s_below": COMPILE_TARGET_S, "verdict_from": "ratio_median"}
     print_table(res)
-    line = json.dumps(_rounded(res))
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(line + "\n")
-    print(line)
+    emit(_rounded(res), args.out)
 
 
 def _cpu_name() -> str:

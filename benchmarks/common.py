@@ -1,0 +1,32 @@
+"""What every benchmark script shares: the spread of per-repeat figures and the one JSON line
+at the end (printed, and written atomically to `--out FILE` when given).
+
+The scripts run as `python benchmarks/NAME.py`, so this folder is on `sys.path` and they
+import it as `common`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import statistics
+from pathlib import Path
+
+
+def spread(values) -> dict:
+    """min / median / max of per-repeat figures, as floats."""
+    values = [float(v) for v in values]
+    return {"min": min(values), "median": statistics.median(values), "max": max(values)}
+
+
+def emit(result: dict, out: str | Path | None) -> str:
+    """Print `result` as one JSON line; with `out`, also write it there (a temporary file
+    renamed into place, so an interrupted write leaves the previous result whole)."""
+    line = json.dumps(result)
+    if out:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(line + "\n")
+        os.replace(tmp, out)
+    print(line)
+    return line
