@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import statistics
+import sys
 from pathlib import Path
 
 
@@ -30,3 +31,13 @@ def emit(result: dict, out: str | Path | None) -> str:
         os.replace(tmp, out)
     print(line)
     return line
+
+
+def warn_if_busy(result: dict, load_avg_start: float, load_avg_end: float) -> None:
+    """Add a `warning` to `result` (and print it) when the load average at the start or the
+    end of the run exceeded half the CPUs: wall-clock figures taken then are unreliable."""
+    busy = max(load_avg_start, load_avg_end)
+    cpus = os.cpu_count() or 1
+    if busy > 0.5 * cpus:
+        result["warning"] = f"machine busy (load average up to {busy:.1f} on {cpus} CPUs): wall-clock figures are unreliable"
+        print("warning: " + result["warning"], file=sys.stderr, flush=True)

@@ -46,6 +46,8 @@ import os
 import sys
 import time
 
+from common import warn_if_busy
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -251,11 +253,7 @@ def main() -> None:
     results["load_avg_end"] = round(os.getloadavg()[0], 2)
     results["load_avg_1min"] = results["load_avg_end"]
     results["steps_per_call"] = args.steps
-    busy = max(results["load_avg_start"], results["load_avg_end"])
-    if busy > 0.5 * (os.cpu_count() or 1):
-        results["warning"] = (f"machine busy (load average up to {busy:.1f} on {os.cpu_count()} CPUs): "
-                              "wall-clock figures are unreliable")
-        print("warning: " + results["warning"], file=sys.stderr, flush=True)
+    warn_if_busy(results, results["load_avg_start"], results["load_avg_end"])
     if best:
         print(f"best: {best} median {spread[best]['median']:.0f} obs/s [min {spread[best]['min']:.0f}, max "
               f"{spread[best]['max']:.0f}]: target {TARGET_OBS_PER_S:.0f} obs/s "

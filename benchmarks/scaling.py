@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import emit, spread
+from common import emit, spread, warn_if_busy
 
 ROOT = Path(__file__).resolve().parent.parent
 SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false"  # (`intra_op_parallelism_threads=1` is no XLA flag: it ends the parsing of XLA_FLAGS)
@@ -150,11 +150,7 @@ def main(argv=None) -> int:
         "target_met_all_repeats": bool(layouts["2proc_1core"]["configs_per_s"]["min"] >= TARGET * one["max"]),
         "load_avg_end": os.getloadavg()[0],
     })
-    busy = max(load_avg_start, result["load_avg_end"])
-    if busy > 0.5 * (os.cpu_count() or 1):
-        result["warning"] = (f"machine busy (load average up to {busy:.1f} on {os.cpu_count()} CPUs): "
-                             "wall-clock figures are unreliable")
-        print("warning: " + result["warning"], file=sys.stderr, flush=True)
+    warn_if_busy(result, load_avg_start, result["load_avg_end"])
     for name, r in layouts.items():
         c = r["configs_per_s"]
         print(f"{name}: {r['configs']} configs on {r['devices']} device(s), {r['processes']} process(es), "

@@ -44,7 +44,7 @@ from cdrl.models.arch import preset
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, init_sweep, sweep_step, take
 from cdrl.training.step import train_step
-from common import emit, spread
+from common import emit, spread, warn_if_busy
 
 
 def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
@@ -142,11 +142,7 @@ def main(argv=None) -> int:
         "target_met_all_repeats": None if target is None else bool(r_spread["min"] >= target),
         "load_avg_end": os.getloadavg()[0],
     })
-    busy = max(load_avg_start, result["load_avg_end"])
-    if busy > 0.5 * (os.cpu_count() or 1):
-        result["warning"] = (f"machine busy (load average up to {busy:.1f} on {os.cpu_count()} CPUs): "
-                             "wall-clock figures are unreliable")
-        print("warning: " + result["warning"], file=sys.stderr, flush=True)
+    warn_if_busy(result, load_avg_start, result["load_avg_end"])
     verdict = "no target for this N" if target is None else \
         f"target x{target:g} {'met' if result['target_met'] else 'missed'} (median)"
     print(f"{args.variant} {args.preset} N={n} B={B} T={T}: {n} runs one after another "

@@ -281,6 +281,17 @@ def _finished(out_dir: Path, config: dict) -> dict | None:
     return manifest
 
 
+def _write_set(out_dir, config: dict, fill) -> dict:
+    """The manifest of the data set `config` in `out_dir`: read back if it is complete, else
+    `fill(writer)` records the missing episodes under the directory's lock first."""
+    done = _finished(Path(out_dir), config)
+    if done is not None:
+        return done
+    with _Writer(out_dir, config) as writer:
+        fill(writer)
+        return _read_manifest(writer.dir)
+
+
 def _params_dict(params) -> dict[str, float | int]:
     """Field name -> Python number (a float32 value as its shortest decimal form)."""
     out = {}
@@ -410,14 +421,12 @@ def collect(
         "num_episodes": int(num_episodes),
         "obs_size": int(obs_size),
     }
-    done = _finished(Path(out_dir), config)
-    if done is not None:
-        return done
-    with _Writer(out_dir, config) as writer:
+    def fill(writer):
         if writer.missing:
             _simulate(writer, params, game_kwargs, policy, int(seed), int(max_steps), int(batch_size),
                       int(chunk_steps), int(obs_size), compress, progress)
-        return _read_manifest(writer.dir)
+
+    return _write_set(out_dir, config, fill)
 
 
 def _simulate(writer: _Writer, params, game_kwargs: dict, policy: str, seed: int, max_steps: int, batch_size: int,
@@ -538,12 +547,8 @@ def record_gym(
         "num_episodes": int(num_episodes),
         **(config_extra or {}),
     }
-    done = _finished(Path(out_dir), config)
-    if done is not None:
-        return done
-    with _Writer(out_dir, config) as writer:
-        _record(writer, env, policy_fn, kwargs, int(seed), max_steps, action_fn, compress)
-        return _read_manifest(writer.dir)
+    return _write_set(out_dir, config,
+                      lambda writer: _record(writer, env, policy_fn, kwargs, int(seed), max_steps, action_fn, compress))
 
 
 def _record(writer: _Writer, env, policy_fn, kwargs: dict, seed: int, max_steps: int | None, action_fn,
