@@ -8,8 +8,8 @@ on three layouts of CPU cores, each a fresh set of processes pinned with `taskse
   * `1proc_2core`: one process on cores 0 and 1 with two host devices
     (`--xla_force_host_platform_device_count=2`), 2K configurations.
 
-Every process runs XLA single-threaded (`--xla_cpu_multi_thread_eigen=false
-intra_op_parallelism_threads=1`), so a layout uses exactly the cores it is pinned to. Weak
+Every process runs XLA single-threaded (`--xla_cpu_multi_thread_eigen=false`), so a layout
+uses exactly the cores it is pinned to. Weak
 scaling: each device holds K configurations, so ideal scaling doubles the configurations/s
 (configuration-steps per second; frames/s is that times B x T). After `--warmup` steps (the
 compile), `--repeats` consecutive windows of `--steps` steps are timed, each window from the
