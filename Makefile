@@ -32,7 +32,8 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/env_throughput.py --quick
 	$(VENV)/bin/python benchmarks/train_throughput.py --quick
 
-# Re-run the notebooks at the full budget and store their outputs (tens of minutes on 2 cores).
+# Re-run the notebooks at the full budget and store their outputs (about an hour on 2 cores;
+# 02 and 03 reuse finished sweeps and runs under notebooks/runs/full/).
 notebooks: $(STAMP)
 	for nb in notebooks/0*.ipynb; do CDRL_NOTEBOOK_BUDGET=full $(VENV)/bin/jupyter execute --inplace --timeout=-1 $$nb || exit 1; done
 
