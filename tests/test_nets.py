@@ -112,41 +112,59 @@ def test_conv_transpose_matches_its_definition(size, kernel, stride, padding):
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("size,kernel,stride,padding", [(150, 4, 2, 2), (7, 4, 2, 1), (5, 5, 1, 0), (9, 3, 2, 1), (8, 4, 4, 0)])
-def test_matmul_convolution_equals_xla_convolution(size, kernel, stride, padding):
-    """The space-to-depth matrix-multiply convolution against XLA's, values and gradients."""
-    rng = np.random.default_rng(1)
-    x = jnp.asarray(rng.normal(size=(2, size, size, 3)), jnp.float32)
-    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, 5)), jnp.float32)
-
-    def xla(x, k):
-        return jax.lax.conv_general_dilated(x, k, (stride, stride), [(padding, padding)] * 2,
+def _xla_conv_transpose(stride, padding):
+    def f(x, k):
+        pad = k.shape[0] - 1 - padding
+        return jax.lax.conv_general_dilated(x, k[::-1, ::-1], (1, 1), [(pad, pad)] * 2, lhs_dilation=(stride, stride),
                                             dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return f
 
-    def mine(x, k):
-        return nets.conv2d(x, k, stride, padding)
 
+def _assert_same_function(mine, xla, x, k, seed):
+    """Values and both gradients (input and kernel) of `mine` against XLA's convolution."""
     np.testing.assert_allclose(mine(x, k), xla(x, k), rtol=1e-4, atol=1e-4)
-    cot = jnp.asarray(rng.normal(size=xla(x, k).shape), jnp.float32)
-    for got, want in zip(jax.vjp(mine, x, k)[1](cot), jax.vjp(xla, x, k)[1](cot)):
-        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+    cot = jnp.asarray(np.random.default_rng(seed).normal(size=xla(x, k).shape), jnp.float32)
+    got, want = jax.vjp(mine, x, k)[1](cot), jax.vjp(xla, x, k)[1](cot)
+    for name, g, w in zip(("input", "kernel"), got, want):
+        assert g.shape == w.shape, name
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-3 * float(jnp.abs(w).max()), err_msg=name)
 
 
-def test_matmul_conv_transpose_gradient_equals_dilated_form():
+# (150, 4, 2, 2): the thesis's first layer; (7, 4, 2, 1): a stride that does not divide
+# h + 2p - k (the last input row is never read: zero gradient); (5, 5, 1, 0): a dense layer;
+# (9, 3, 2, 1): a stride that does not divide the kernel; batch 20: three kernel-gradient tiles.
+@pytest.mark.parametrize("size,kernel,stride,padding,batch",
+                         [(150, 4, 2, 2, 2), (7, 4, 2, 1, 2), (5, 5, 1, 0, 2), (9, 3, 2, 1, 2), (8, 4, 4, 0, 2),
+                          (12, 4, 2, 1, 20)])
+def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch):
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(rng.normal(size=(batch, size, size, 3)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, 5)), jnp.float32)
+    _assert_same_function(lambda a, b: nets.conv2d(a, b, stride, padding), lambda a, b: _xla_conv(a, b, stride, padding), x, k, 2)
+
+
+@pytest.mark.parametrize("size,kernel,stride,padding,batch",
+                         [(10, 4, 2, 1, 2), (19, 4, 2, 2, 2), (1, 5, 1, 0, 2), (6, 3, 2, 0, 2), (9, 4, 2, 1, 20)])
+def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, batch):
     rng = np.random.default_rng(2)
-    x = jnp.asarray(rng.normal(size=(2, 10, 10, 3)), jnp.float32)
-    k = jnp.asarray(rng.normal(size=(4, 4, 3, 2)), jnp.float32)
+    x = jnp.asarray(rng.normal(size=(batch, size, size, 3)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, 2)), jnp.float32)
+    _assert_same_function(lambda a, b: nets.conv_transpose(a, b, stride, padding),
+                          _xla_conv_transpose(stride, padding), x, k, 3)
 
-    def dilated(x, k):
-        return jax.lax.conv_general_dilated(x, k[::-1, ::-1], (1, 1), [(2, 2)] * 2, lhs_dilation=(2, 2),
-                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
-    out = nets.conv_transpose(x, k, 2, 1)
-    cot = jnp.asarray(rng.normal(size=out.shape), jnp.float32)
-    np.testing.assert_allclose(out, dilated(x, k), rtol=1e-4, atol=1e-4)
-    for got, want in zip(jax.vjp(lambda a, b: nets.conv_transpose(a, b, 2, 1), x, k)[1](cot),
-                         jax.vjp(dilated, x, k)[1](cot)):
-        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+def test_kernel_gradient_tiles_cover_the_batch(monkeypatch):
+    """Tiles of 2 frames, at most 3 tiles: 20 frames go in 3 tiles of 7, 7 and 6."""
+    from cdrl.models import conv
+
+    monkeypatch.setattr(conv, "KERNEL_GRAD_TILE", 2)
+    monkeypatch.setattr(conv, "MAX_KERNEL_GRAD_TILES", 3)
+    rng = np.random.default_rng(4)
+    x = jnp.asarray(rng.normal(size=(20, 12, 12, 3)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(4, 4, 3, 5)), jnp.float32)
+    jaxpr = str(jax.make_jaxpr(jax.grad(lambda k: jnp.sum(nets.conv2d(x, k, 2, 1) ** 2)))(k))
+    assert jaxpr.count("f32[7,12,12,3]") >= 2 and "f32[6,12,12,3]" in jaxpr
+    _assert_same_function(lambda a, b: nets.conv2d(a, b, 2, 1), lambda a, b: _xla_conv(a, b, 2, 1), x, k, 5)
 
 
 def test_lstm_cell_equals_thesis_equations():

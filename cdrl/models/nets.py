@@ -5,7 +5,8 @@ Parameters are nested dicts of arrays (one leaf per kernel and per bias, the the
 "independently initialised parameter groups"); static sizes come from `ArchConfig`.
 Images are NHWC inside the networks; the public encode/decode functions take and return
 `[B, H, W]` frames. Initialisation: LeCun-normal for layers followed by SELU, Glorot for
-the rest (LSTM, the sigmoid output layers, linear heads).
+the rest (LSTM, the sigmoid output layers, linear heads). The convolutions are
+`cdrl.models.conv`'s.
 """
 from __future__ import annotations
 
@@ -15,12 +16,12 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.models.arch import ArchConfig
+from cdrl.models.conv import conv2d, conv_transpose
 
 Params = dict
 
 _lecun = jax.nn.initializers.lecun_normal()
 _glorot = jax.nn.initializers.glorot_uniform()
-_DIMS = ("NHWC", "HWIO", "NHWC")
 
 
 def _dense_init(key, n_in: int, n_out: int, selu: bool) -> Params:
@@ -70,44 +71,6 @@ def init_obs_encoder(key, arch: ArchConfig) -> Params:
     return params
 
 
-def space_to_depth(x: jax.Array, s: int) -> jax.Array:
-    """[N, H, W, C] -> [N, H/s, W/s, s*s*C], channels ordered (row phase, column phase, C)."""
-    n, h, w, c = x.shape
-    x = x.reshape(n, h // s, s, w // s, s, c).transpose(0, 1, 3, 2, 4, 5)
-    return x.reshape(n, h // s, w // s, s * s * c)
-
-
-def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
-    """Strided convolution (NHWC, HWIO kernel, symmetric zero padding) as one matrix multiply.
-
-    Where the stride divides the kernel (every layer of the presets), the padded input is
-    folded space-to-depth by the stride, which turns the convolution into a stride-1 one with
-    a (k/s)^2 window: its patches are (k/s)^2 unstrided shifts, concatenated and multiplied
-    by the re-ordered kernel. On XLA's CPU backend this and its gradient (pads, slices and
-    matrix multiplies) run faster than the native convolution, whose input and kernel
-    gradients take slow dilated paths. Other strides use `jax.lax.conv_general_dilated`.
-    """
-    k, _, c_in, c_out = kernel.shape
-    if k % stride:
-        return jax.lax.conv_general_dilated(
-            x, kernel, (stride, stride), [(padding, padding)] * 2, dimension_numbers=_DIMS
-        )
-    n, h, w, _ = x.shape
-    q = k // stride
-    h_out, w_out = (h + 2 * padding - k) // stride + 1, (w + 2 * padding - k) // stride + 1
-    # Pad, then crop or extend to exactly (out - 1 + q) * stride rows and columns.
-    rows, cols = (h_out - 1 + q) * stride, (w_out - 1 + q) * stride
-    x = jnp.pad(x, ((0, 0), (padding, max(0, rows - h - padding)), (padding, max(0, cols - w - padding)), (0, 0)))
-    x = space_to_depth(x[:, :rows, :cols], stride)
-    patches = jnp.concatenate(
-        [x[:, qy: qy + h_out, qx: qx + w_out] for qy in range(q) for qx in range(q)], axis=-1
-    )
-    # kernel[qy*s + ry, qx*s + rx, c, o] -> rows ordered (qy, qx, ry, rx, c) like the patches.
-    kernel = kernel.reshape(q, stride, q, stride, c_in, c_out).transpose(0, 2, 1, 3, 4, 5)
-    y = patches.reshape(-1, k * k * c_in) @ kernel.reshape(k * k * c_in, c_out)
-    return y.reshape(n, h_out, w_out, c_out)
-
-
 def obs_encoder(params: Params, arch: ArchConfig, frames: jax.Array) -> jax.Array:
     """E_o: frames `[B, H, W]` in [0, 1] -> codes `[B, obs_code]` (SELU after every layer).
     The frames enter as (frames - arch.obs_mean) / arch.obs_std."""
@@ -137,40 +100,6 @@ def init_obs_decoder(key, arch: ArchConfig) -> Params:
             "bias": jnp.zeros((c_out,), jnp.float32),
         }
     return params
-
-
-def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
-    """PyTorch `ConvTranspose2d` semantics on NHWC: out = (in - 1) * stride - 2 * padding + k.
-
-    Every input pixel scatters `x @ kernel` into a k x k window of the output at stride
-    `stride`. Where the stride divides the kernel, that is one matrix multiply
-    ([N*H*W, C_in] @ [C_in, k*k*C_out]) followed by an overlap-add: output row s*j + r
-    collects window rows q*s + r from input rows j - q, so each of the s*s output phases is a
-    sum of (k/s)^2 shifted copies, interleaved depth-to-space. No multiply touches the zeros
-    of a dilated input, and the gradient is again pads, slices and matrix multiplies.
-    Other strides use the dilated formulation (the gradient of a strided convolution).
-    """
-    k, _, c_in, c_out = kernel.shape
-    pad = k - 1 - padding
-    if pad < 0:
-        raise ValueError(f"transposed convolution needs padding <= kernel - 1, got {padding} for {k}")
-    if k % stride:
-        return jax.lax.conv_general_dilated(
-            x, kernel[::-1, ::-1], window_strides=(1, 1), padding=[(pad, pad)] * 2,
-            lhs_dilation=(stride, stride), dimension_numbers=_DIMS,
-        )
-    n, h, w, _ = x.shape
-    q = k // stride
-    y = x.reshape(-1, c_in) @ kernel.transpose(2, 0, 1, 3).reshape(c_in, k * k * c_out)
-    y = y.reshape(n, h, w, q, stride, q, stride, c_out)
-    full = None
-    for qy in range(q):
-        for qx in range(q):
-            shifted = jnp.pad(y[:, :, :, qy, :, qx], ((0, 0), (qy, q - 1 - qy), (qx, q - 1 - qx), (0, 0), (0, 0), (0, 0)))
-            full = shifted if full is None else full + shifted
-    rows, cols = (h + q - 1) * stride, (w + q - 1) * stride
-    full = full.transpose(0, 1, 3, 2, 4, 5).reshape(n, rows, cols, c_out)
-    return full[:, padding: rows - padding, padding: cols - padding]
 
 
 def obs_decoder_logits(params: Params, arch: ArchConfig, codes: jax.Array) -> jax.Array:

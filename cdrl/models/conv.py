@@ -1,0 +1,174 @@
+"""Strided and transposed convolutions (NHWC), each pass in the formulation XLA's CPU backend
+runs fastest.
+
+A convolution and its transpose are each other's input gradient, so the two share three
+primitives, chosen by per-layer measurement at the thesis's size (`benchmarks/layer_timings.py`
+times every layer; the figures below are from that machine, 2 cores):
+
+* the strided convolution: XLA's native `conv_general_dilated` (its forward is fast: 18 ms for
+  the 16 -> 16 channel 76 -> 38 layer over 256 frames, where the patches-and-matrix-multiply
+  form took 270 ms);
+* the transposed convolution: the sub-pixel form, one native stride-1 convolution with a
+  (k/s) x (k/s) window and s*s*C_out output channels, then depth-to-space. Output row s*j + r
+  of the transposed convolution collects kernel row q*s + r from input row j - q, so each of the
+  s*s output phases is an ordinary convolution of the input (56 ms for 16 -> 16, 38 -> 76
+  over 256 frames, against 324 ms for XLA's dilated-input form and 150 ms for the
+  matrix-multiply overlap-add form);
+* the kernel gradient: XLA's native kernel-gradient convolution, run over tiles of
+  `KERNEL_GRAD_TILE` frames and summed. Its cost per frame grows with the batch when it runs
+  over the whole batch at once (176 ms for the 76 -> 38 layer over 256 frames, 84 ms in tiles
+  of 8), so tiling is what keeps a batch from costing frames per second.
+
+`jax.custom_vjp` wires them: the gradient of `conv2d` with respect to its input is the
+transposed convolution of the output gradient, and the gradient of `conv_transpose` with
+respect to its input is the strided convolution of the output gradient (XLA's own rules
+would run both through dilated convolutions, many times slower on the CPU). A layer whose
+window covers its whole (padded) input, like the thesis's 5x5 -> 1x1 encoder layer and its
+mirror, is a dense layer and runs as one matrix multiply. Strides that do not divide the
+kernel use XLA's convolutions as they are.
+"""
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+_DIMS = ("NHWC", "HWIO", "NHWC")
+# Frames per tile of the kernel-gradient convolution, and the most tiles one gradient is
+# split into (beyond, tiles grow: the tiles are unrolled in the program, so their number
+# bounds the compile time).
+KERNEL_GRAD_TILE = 8
+MAX_KERNEL_GRAD_TILES = 32
+
+
+def _native(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), [(padding, padding)] * 2,
+                                        dimension_numbers=_DIMS)
+
+
+def _flip_io(kernel: jax.Array) -> jax.Array:
+    """[kh, kw, a, b] -> [kh, kw, b, a]: a convolution's kernel as its transpose's, and back."""
+    return kernel.transpose(0, 1, 3, 2)
+
+
+def _kernel_grad_tile(x: jax.Array, ct: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
+    """d<conv2d(x, kernel), ct>/d kernel as one convolution, written in the layout XLA's CPU
+    backend runs through its Eigen convolution: the frames are the contracted feature axis
+    and the input channels the batch axis. (XLA's own rule leaves this layout to a layout
+    pass that does not reach convolutions inside a `lax.scan`, where the naive loop it falls
+    back to is tens of times slower.)"""
+    _, h, w, _ = x.shape
+    _, ho, wo, _ = ct.shape
+    # Output size k = h + lo + hi - ((ho - 1) * stride + 1) + 1.
+    pads = [(padding, k + (ho - 1) * stride - h - padding), (padding, k + (wo - 1) * stride - w - padding)]
+    g = jax.lax.conv_general_dilated(x.transpose(3, 1, 2, 0), ct.transpose(1, 2, 0, 3), (1, 1), pads,
+                                     rhs_dilation=(stride, stride), dimension_numbers=_DIMS)
+    return g.transpose(1, 2, 0, 3)  # [C_in, k, k, C_out] -> [k, k, C_in, C_out]
+
+
+def _kernel_grad(x: jax.Array, ct: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
+    """d<conv2d(x, kernel), ct>/d kernel, tile by tile of frames, summed."""
+    n = x.shape[0]
+    tile = max(KERNEL_GRAD_TILE, -(-n // MAX_KERNEL_GRAD_TILES))
+    total = None
+    for start in range(0, n, tile):
+        grad = _kernel_grad_tile(x[start: start + tile], ct[start: start + tile], k, stride, padding)
+        total = grad if total is None else total + grad
+    return total
+
+
+def _subpixel_full(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    """The transposed convolution (kernel [kh, kw, in, out]) before any crop, (h - 1) * s + k
+    rows, as one stride-1 convolution with s*s*out channels and depth-to-space (for strides
+    that divide the kernel)."""
+    k, _, c_in, c_out = kernel.shape
+    n, h, w, _ = x.shape
+    s, q = stride, k // stride
+    # Correlation tap a of phase r reads input row j + a - (q - 1), i.e. kernel row (q-1-a)*s + r.
+    taps = kernel.reshape(q, s, q, s, c_in, c_out)[::-1, :, ::-1]
+    taps = taps.transpose(0, 2, 4, 1, 3, 5).reshape(q, q, c_in, s * s * c_out)
+    y = jax.lax.conv_general_dilated(x, taps, (1, 1), [(q - 1, q - 1)] * 2, dimension_numbers=_DIMS)
+    rows, cols = (h + q - 1) * s, (w + q - 1) * s
+    return y.reshape(n, h + q - 1, w + q - 1, s, s, c_out).transpose(0, 1, 3, 2, 4, 5).reshape(n, rows, cols, c_out)
+
+
+def _subpixel_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """PyTorch `ConvTranspose2d`: the full transposed convolution, `padding` cropped on each side."""
+    y = _subpixel_full(x, kernel, stride)
+    return y[:, padding: y.shape[1] - padding, padding: y.shape[2] - padding]
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _strided(x, kernel, stride, padding):
+    return _native(x, kernel, stride, padding)
+
+
+def _strided_fwd(x, kernel, stride, padding):
+    return _native(x, kernel, stride, padding), (x, kernel)
+
+
+def _strided_bwd(stride, padding, res, ct):
+    x, kernel = res
+    # The full transposed convolution covers the padded input up to the last window's end:
+    # drop the leading padding, keep h rows (rows past the last window get no gradient).
+    _, h, w, _ = x.shape
+    dx = _subpixel_full(ct, _flip_io(kernel), stride)[:, padding: padding + h, padding: padding + w]
+    dx = jnp.pad(dx, ((0, 0), (0, h - dx.shape[1]), (0, w - dx.shape[2]), (0, 0)))
+    return dx, _kernel_grad(x, ct, kernel.shape[0], stride, padding)
+
+
+_strided.defvjp(_strided_fwd, _strided_bwd)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _transposed(x, kernel, stride, padding):
+    return _subpixel_transpose(x, kernel, stride, padding)
+
+
+def _transposed_fwd(x, kernel, stride, padding):
+    return _subpixel_transpose(x, kernel, stride, padding), (x, kernel)
+
+
+def _transposed_bwd(stride, padding, res, ct):
+    # <conv_transpose(x, K), ct> = <x, conv2d(ct, K with in and out swapped)>.
+    x, kernel = res
+    dx = _native(ct, _flip_io(kernel), stride, padding)
+    dk = _flip_io(_kernel_grad(ct, x, kernel.shape[0], stride, padding))
+    return dx, dk
+
+
+_transposed.defvjp(_transposed_fwd, _transposed_bwd)
+
+
+def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """Strided convolution: NHWC input, HWIO kernel, symmetric zero padding (see the module
+    docstring for the formulation of each pass)."""
+    k, _, c_in, c_out = kernel.shape
+    n, h, w, _ = x.shape
+    if h + 2 * padding == k and w + 2 * padding == k:  # one window: a dense layer
+        x = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
+        return (x.reshape(n, k * k * c_in) @ kernel.reshape(k * k * c_in, c_out)).reshape(n, 1, 1, c_out)
+    if k % stride:
+        return _native(x, kernel, stride, padding)
+    return _strided(x, kernel, stride, padding)
+
+
+def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """PyTorch `ConvTranspose2d` semantics on NHWC, kernel [kh, kw, in, out] (PyTorch's weight
+    [in, out, kh, kw]): out = (in - 1) * stride - 2 * padding + k. Every input pixel scatters
+    `x @ kernel` into a k x k window of the output at stride `stride`."""
+    k, _, c_in, c_out = kernel.shape
+    pad = k - 1 - padding
+    if pad < 0:
+        raise ValueError(f"transposed convolution needs padding <= kernel - 1, got {padding} for {k}")
+    n, h, w, _ = x.shape
+    if h == 1 and w == 1:  # one input pixel: a dense layer onto the k x k window
+        y = x.reshape(n, c_in) @ kernel.transpose(2, 0, 1, 3).reshape(c_in, k * k * c_out)
+        return y.reshape(n, k, k, c_out)[:, padding: k - padding, padding: k - padding]
+    if k % stride:
+        return jax.lax.conv_general_dilated(
+            x, kernel[::-1, ::-1], window_strides=(1, 1), padding=[(pad, pad)] * 2,
+            lhs_dilation=(stride, stride), dimension_numbers=_DIMS,
+        )
+    return _transposed(x, kernel, stride, padding)
