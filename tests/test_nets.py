@@ -132,23 +132,25 @@ def _assert_same_function(mine, xla, x, k, seed):
 
 # (150, 4, 2, 2): the thesis's first layer; (7, 4, 2, 1): a stride that does not divide
 # h + 2p - k (the last input row is never read: zero gradient); (5, 5, 1, 0): a dense layer;
-# (9, 3, 2, 1): a stride that does not divide the kernel; batch 20: three kernel-gradient tiles.
-@pytest.mark.parametrize("size,kernel,stride,padding,batch",
-                         [(150, 4, 2, 2, 2), (7, 4, 2, 1, 2), (5, 5, 1, 0, 2), (9, 3, 2, 1, 2), (8, 4, 4, 0, 2),
-                          (12, 4, 2, 1, 20)])
-def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch):
+# (9, 3, 2, 1): a stride that does not divide the kernel; batch 20: three kernel-gradient tiles;
+# one input channel: the space-to-depth forward.
+@pytest.mark.parametrize("size,kernel,stride,padding,batch,c_in",
+                         [(150, 4, 2, 2, 2, 3), (7, 4, 2, 1, 2, 3), (5, 5, 1, 0, 2, 3), (9, 3, 2, 1, 2, 3),
+                          (8, 4, 4, 0, 2, 3), (12, 4, 2, 1, 20, 3), (15, 4, 2, 2, 2, 1), (7, 4, 2, 1, 2, 1)])
+def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch, c_in):
     rng = np.random.default_rng(1)
-    x = jnp.asarray(rng.normal(size=(batch, size, size, 3)), jnp.float32)
-    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, 5)), jnp.float32)
+    x = jnp.asarray(rng.normal(size=(batch, size, size, c_in)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(kernel, kernel, c_in, 5)), jnp.float32)
     _assert_same_function(lambda a, b: nets.conv2d(a, b, stride, padding), lambda a, b: _xla_conv(a, b, stride, padding), x, k, 2)
 
 
-@pytest.mark.parametrize("size,kernel,stride,padding,batch",
-                         [(10, 4, 2, 1, 2), (19, 4, 2, 2, 2), (1, 5, 1, 0, 2), (6, 3, 2, 0, 2), (9, 4, 2, 1, 20)])
-def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, batch):
+@pytest.mark.parametrize("size,kernel,stride,padding,batch,c_out",
+                         [(10, 4, 2, 1, 2, 2), (19, 4, 2, 2, 2, 2), (1, 5, 1, 0, 2, 2), (6, 3, 2, 0, 2, 2),
+                          (9, 4, 2, 1, 20, 2), (8, 4, 2, 2, 2, 1)])
+def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, batch, c_out):
     rng = np.random.default_rng(2)
     x = jnp.asarray(rng.normal(size=(batch, size, size, 3)), jnp.float32)
-    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, 2)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(kernel, kernel, 3, c_out)), jnp.float32)
     _assert_same_function(lambda a, b: nets.conv_transpose(a, b, stride, padding),
                           _xla_conv_transpose(stride, padding), x, k, 3)
 

@@ -47,6 +47,30 @@ def _native(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.A
                                         dimension_numbers=_DIMS)
 
 
+def _space_to_depth_conv(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """The strided convolution as a stride-1 one on the input folded space-to-depth by the
+    stride (s*s*C_in channels, a (k/s) x (k/s) window), for strides that divide the kernel."""
+    k, _, c_in, c_out = kernel.shape
+    n, h, w, _ = x.shape
+    s, q = stride, k // stride
+    h_out, w_out = (h + 2 * padding - k) // s + 1, (w + 2 * padding - k) // s + 1
+    rows, cols = (h_out - 1 + q) * s, (w_out - 1 + q) * s  # exactly the rows the windows read
+    x = jnp.pad(x, ((0, 0), (padding, max(0, rows - h - padding)), (padding, max(0, cols - w - padding)), (0, 0)))
+    x = x[:, :rows, :cols].reshape(n, rows // s, s, cols // s, s, c_in).transpose(0, 1, 3, 2, 4, 5)
+    x = x.reshape(n, rows // s, cols // s, s * s * c_in)
+    # kernel[qy*s + ry, qx*s + rx, c, o] -> [qy, qx, (ry, rx, c), o], like the folded channels.
+    kernel = kernel.reshape(q, s, q, s, c_in, c_out).transpose(0, 2, 1, 3, 4, 5).reshape(q, q, s * s * c_in, c_out)
+    return jax.lax.conv_general_dilated(x, kernel, (1, 1), "VALID", dimension_numbers=_DIMS)
+
+
+def _strided_forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    # A single input channel gives XLA's convolution nothing to vectorise over; folded
+    # space-to-depth it has s*s (the thesis's first layer over 32 frames: 2.6 ms against 3.8 ms).
+    if x.shape[-1] == 1:
+        return _space_to_depth_conv(x, kernel, stride, padding)
+    return _native(x, kernel, stride, padding)
+
+
 def _flip_io(kernel: jax.Array) -> jax.Array:
     """[kh, kw, a, b] -> [kh, kw, b, a]: a convolution's kernel as its transpose's, and back."""
     return kernel.transpose(0, 1, 3, 2)
@@ -101,11 +125,11 @@ def _subpixel_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: i
 
 @partial(jax.custom_vjp, nondiff_argnums=(2, 3))
 def _strided(x, kernel, stride, padding):
-    return _native(x, kernel, stride, padding)
+    return _strided_forward(x, kernel, stride, padding)
 
 
 def _strided_fwd(x, kernel, stride, padding):
-    return _native(x, kernel, stride, padding), (x, kernel)
+    return _strided_forward(x, kernel, stride, padding), (x, kernel)
 
 
 def _strided_bwd(stride, padding, res, ct):
@@ -133,7 +157,7 @@ def _transposed_fwd(x, kernel, stride, padding):
 def _transposed_bwd(stride, padding, res, ct):
     # <conv_transpose(x, K), ct> = <x, conv2d(ct, K with in and out swapped)>.
     x, kernel = res
-    dx = _native(ct, _flip_io(kernel), stride, padding)
+    dx = _strided_forward(ct, _flip_io(kernel), stride, padding)
     dk = _flip_io(_kernel_grad(ct, x, kernel.shape[0], stride, padding))
     return dx, dk
 
