@@ -133,10 +133,11 @@ def _assert_same_function(mine, xla, x, k, seed):
 # (150, 4, 2, 2): the thesis's first layer; (7, 4, 2, 1): a stride that does not divide
 # h + 2p - k (the last input row is never read: zero gradient); (5, 5, 1, 0): a dense layer;
 # (9, 3, 2, 1): a stride that does not divide the kernel; batch 20: three kernel-gradient tiles;
-# one input channel: the space-to-depth forward.
+# one input channel: the space-to-depth forward; batch 1: the single-frame kernel gradient.
 @pytest.mark.parametrize("size,kernel,stride,padding,batch,c_in",
                          [(150, 4, 2, 2, 2, 3), (7, 4, 2, 1, 2, 3), (5, 5, 1, 0, 2, 3), (9, 3, 2, 1, 2, 3),
-                          (8, 4, 4, 0, 2, 3), (12, 4, 2, 1, 20, 3), (15, 4, 2, 2, 2, 1), (7, 4, 2, 1, 2, 1)])
+                          (8, 4, 4, 0, 2, 3), (12, 4, 2, 1, 20, 3), (15, 4, 2, 2, 2, 1), (7, 4, 2, 1, 2, 1),
+                          (12, 4, 2, 1, 1, 3), (7, 4, 2, 1, 1, 3)])
 def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch, c_in):
     rng = np.random.default_rng(1)
     x = jnp.asarray(rng.normal(size=(batch, size, size, c_in)), jnp.float32)
@@ -146,7 +147,7 @@ def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch
 
 @pytest.mark.parametrize("size,kernel,stride,padding,batch,c_out",
                          [(10, 4, 2, 1, 2, 2), (19, 4, 2, 2, 2, 2), (1, 5, 1, 0, 2, 2), (6, 3, 2, 0, 2, 2),
-                          (9, 4, 2, 1, 20, 2), (8, 4, 2, 2, 2, 1)])
+                          (9, 4, 2, 1, 20, 2), (8, 4, 2, 2, 2, 1), (9, 4, 2, 1, 1, 2), (10, 4, 2, 2, 1, 1)])
 def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, batch, c_out):
     rng = np.random.default_rng(2)
     x = jnp.asarray(rng.normal(size=(batch, size, size, 3)), jnp.float32)

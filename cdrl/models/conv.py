@@ -47,20 +47,31 @@ def _native(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.A
                                         dimension_numbers=_DIMS)
 
 
-def _space_to_depth_conv(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
-    """The strided convolution as a stride-1 one on the input folded space-to-depth by the
-    stride (s*s*C_in channels, a (k/s) x (k/s) window), for strides that divide the kernel."""
-    k, _, c_in, c_out = kernel.shape
-    n, h, w, _ = x.shape
+def _fold(x: jax.Array, k: int, stride: int, padding: int, h_out: int, w_out: int) -> jax.Array:
+    """The padded input rows and columns that `h_out` x `w_out` windows read, folded
+    space-to-depth by the stride: [N, H, W, C] -> [N, h_out - 1 + k/s, w_out - 1 + k/s, s*s*C],
+    channels ordered (row phase, column phase, C)."""
+    n, h, w, c = x.shape
     s, q = stride, k // stride
-    h_out, w_out = (h + 2 * padding - k) // s + 1, (w + 2 * padding - k) // s + 1
-    rows, cols = (h_out - 1 + q) * s, (w_out - 1 + q) * s  # exactly the rows the windows read
+    rows, cols = (h_out - 1 + q) * s, (w_out - 1 + q) * s
     x = jnp.pad(x, ((0, 0), (padding, max(0, rows - h - padding)), (padding, max(0, cols - w - padding)), (0, 0)))
-    x = x[:, :rows, :cols].reshape(n, rows // s, s, cols // s, s, c_in).transpose(0, 1, 3, 2, 4, 5)
-    x = x.reshape(n, rows // s, cols // s, s * s * c_in)
+    x = x[:, :rows, :cols].reshape(n, rows // s, s, cols // s, s, c).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(n, rows // s, cols // s, s * s * c)
+
+
+def _out_size(size: int, k: int, stride: int, padding: int) -> int:
+    return (size + 2 * padding - k) // stride + 1
+
+
+def _space_to_depth_conv(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """The strided convolution as a stride-1 one with a (k/s) x (k/s) window on the input
+    folded space-to-depth (for strides that divide the kernel)."""
+    k, _, c_in, c_out = kernel.shape
+    s, q = stride, k // stride
+    folded = _fold(x, k, s, padding, _out_size(x.shape[1], k, s, padding), _out_size(x.shape[2], k, s, padding))
     # kernel[qy*s + ry, qx*s + rx, c, o] -> [qy, qx, (ry, rx, c), o], like the folded channels.
     kernel = kernel.reshape(q, s, q, s, c_in, c_out).transpose(0, 2, 1, 3, 4, 5).reshape(q, q, s * s * c_in, c_out)
-    return jax.lax.conv_general_dilated(x, kernel, (1, 1), "VALID", dimension_numbers=_DIMS)
+    return jax.lax.conv_general_dilated(folded, kernel, (1, 1), "VALID", dimension_numbers=_DIMS)
 
 
 def _strided_forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
@@ -81,9 +92,18 @@ def _kernel_grad_tile(x: jax.Array, ct: jax.Array, k: int, stride: int, padding:
     backend runs through its Eigen convolution: the frames are the contracted feature axis
     and the input channels the batch axis. (XLA's own rule leaves this layout to a layout
     pass that does not reach convolutions inside a `lax.scan`, where the naive loop it falls
-    back to is tens of times slower.)"""
-    _, h, w, _ = x.shape
-    _, ho, wo, _ = ct.shape
+    back to is tens of times slower.) With a single frame that contraction has length one and
+    (k/s)^2 matrix products over the folded input are faster (the 76 -> 38 layer: 0.5 ms
+    against 1.3 ms): a closed loop's step runs its convolutions on one frame per stream."""
+    _, h, w, c_in = x.shape
+    _, ho, wo, c_out = ct.shape
+    if x.shape[0] == 1:
+        s, q = stride, k // stride
+        folded = _fold(x, k, s, padding, ho, wo)[0]
+        taps = [jnp.einsum("yxc,yxo->co", folded[a: a + ho, b: b + wo], ct[0]) for a in range(q) for b in range(q)]
+        # [(qy, qx), (ry, rx, c), o] -> [qy*s + ry, qx*s + rx, c, o]
+        g = jnp.stack(taps).reshape(q, q, s, s, c_in, c_out).transpose(0, 2, 1, 3, 4, 5)
+        return g.reshape(k, k, c_in, c_out)
     # Output size k = h + lo + hi - ((ho - 1) * stride + 1) + 1.
     pads = [(padding, k + (ho - 1) * stride - h - padding), (padding, k + (wo - 1) * stride - w - padding)]
     g = jax.lax.conv_general_dilated(x.transpose(3, 1, 2, 0), ct.transpose(1, 2, 0, 3), (1, 1), pads,
