@@ -239,7 +239,9 @@ def test_two_process_sweep_killed_and_resumed_writes_what_one_process_writes(tmp
         assert rows[name]["diverged_at"] == row["diverged_at"]
         assert rows[name]["test_bce"] == pytest.approx(row["test_bce"], rel=1e-6)
         assert (two / name / "config.json").read_text() == (one / name / "config.json").read_text()
-        _same_checkpoints(two / name, one / name, rtol=1e-6)
+        # Two compiled programs (one configuration per device against two vmapped on one)
+        # sum in different orders: after 24 steps single parameters differ by about 1e-6.
+        _same_checkpoints(two / name, one / name, rtol=1e-5)
         # configurations 0 and 1 are on process 0's device, 2 (and the pad) on process 1's
         assert int((two / name / ".lock").read_text()) == resumed[0 if index < 2 else 1].pid
     assert int((two / ".lock").read_text()) == resumed[0].pid
