@@ -115,6 +115,31 @@ def test_a_second_writer_is_refused_while_readers_work(tmp_path, capsys):
     assert [r["step"] for r in _records(run / "metrics.jsonl")] == list(range(steps))
 
 
+def test_a_reader_lists_again_when_the_writer_rotates_a_checkpoint_away_mid_read(tmp_path):
+    """The race behind `plot` beside a live run: the reader lists the checkpoints, the writer
+    saves a newer one and its rotation removes the one the reader is about to read."""
+    import numpy as np
+    from cdrl.runs.checkpoint import Checkpoints
+
+    state = {"w": np.arange(4.0, dtype=np.float32)}
+    writer = Checkpoints(tmp_path / "ck", keep=1)
+    writer.save(1, state, {"step": 1})
+    reader = Checkpoints(tmp_path / "ck", read_only=True)
+    read_meta = reader.read_meta
+
+    def writer_saves_first(step):
+        if step == 1:
+            writer.save(2, {"w": state["w"] + 1}, {"step": 2})
+            assert not (tmp_path / "ck" / "1").exists()
+        return read_meta(step)
+
+    reader.read_meta = writer_saves_first
+    restored, meta, warnings = reader.restore_latest_good(state)
+    assert meta["step"] == 2 and warnings == []
+    np.testing.assert_array_equal(restored["w"], state["w"] + 1)
+    assert reader.steps() == [2]
+
+
 def test_a_sweep_locks_its_configurations(tmp_path, capsys):
     sweep = tmp_path / "sweep"
     proc = _start("sweep", "--run-dir", str(sweep), *TINY_RUN, "--lr", "0.3", "0.1", "--steps", "100000",

@@ -93,7 +93,7 @@ def restore_model(run: Run) -> Model:
     # The abstract shape of a state is all a restore needs; tracing it is much cheaper than
     # initialising one eagerly.
     like = jax.eval_shape(lambda: init_state(variant, jax.random.PRNGKey(0), cfg.batch, hp))
-    state, meta, warnings = RunDir(run.path).checkpoints(cfg.keep_checkpoints).restore_latest_good(like)
+    state, meta, warnings = RunDir(run.path).read_checkpoints().restore_latest_good(like)
     for warning in warnings:
         print(f"warning: {warning}; using an older checkpoint", file=sys.stderr)
     return Model(variant=variant, params=state.params, step=int(meta["step"]))

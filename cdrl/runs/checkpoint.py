@@ -36,12 +36,28 @@ class CheckpointError(RuntimeError):
     """No usable checkpoint, or one from an incompatible configuration."""
 
 
+# How many times a reader lists the checkpoints again after one it was reading was removed.
+VANISHED_RETRIES = 5
+_VANISHED = object()
+
+
 class Checkpoints:
     """Save and restore training states (any pytree) and their metadata under `directory`."""
 
-    def __init__(self, directory: str | Path, keep: int = 3, primary: int = 0):
+    def __init__(self, directory: str | Path, keep: int = 3, primary: int = 0, read_only: bool = False):
+        """`read_only`: for a process that does not own the run (evaluation, figures) while its
+        writer may still be training: nothing is created, rotated or deleted, and the list of
+        checkpoints is read afresh each time, since the writer's rotation removes old ones."""
         self.directory = Path(directory).absolute()
         self.primary = primary
+        self.read_only = read_only
+        if read_only:
+            # Without `lightweight_initialize` the manager reads every checkpoint's metadata at
+            # construction and fails on one that the writer removes meanwhile.
+            options = ocp.CheckpointManagerOptions(read_only=True, lightweight_initialize=True,
+                                                   enable_async_checkpointing=False)
+            self.manager = ocp.CheckpointManager(self.directory, options=options)
+            return
         if primary == 0:
             options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
             self.manager = ocp.CheckpointManager(self.directory, options=options)
@@ -57,7 +73,7 @@ class Checkpoints:
         return jax.process_index() == self.primary
 
     def steps(self) -> list[int]:
-        return sorted(self.manager.all_steps())
+        return sorted(self.manager.all_steps(read=self.read_only))
 
     def save(self, step: int, state, meta: dict[str, Any]) -> None:
         """Save `state` as checkpoint `step`, replacing a stale one of the same step (left by a
@@ -114,24 +130,42 @@ class Checkpoints:
         """The newest checkpoint that restores cleanly; older ones are tried when a newer one is
         corrupt. `check_meta(meta)` may raise `CheckpointError` for an incompatible config
         (that is not skipped: it is an error). Returns (state, meta, warnings)."""
-        steps = self.steps()
-        if not steps:
-            raise CheckpointError(f"no checkpoint found in {self.directory}")
+        for _ in range(VANISHED_RETRIES):
+            steps = self.steps()
+            if not steps:
+                raise CheckpointError(f"no checkpoint found in {self.directory}")
+            found, warnings = self._newest_good(steps, like, check_meta)
+            if found is not _VANISHED:
+                break
+        else:
+            raise CheckpointError(f"the checkpoints in {self.directory} kept being removed while they were read "
+                                  f"({VANISHED_RETRIES} listings): is a run rotating them very fast?")
+        if found is not None:
+            return (*found, warnings)
+        raise CheckpointError(
+            f"every checkpoint in {self.directory} is corrupt or unreadable:\n  " + "\n  ".join(warnings)
+        )
+
+    def _newest_good(self, steps: list[int], like, check_meta):
+        """((state, meta) of the newest of `steps` that restores, or None; warnings), or
+        (_VANISHED, ...) when a checkpoint disappeared while it was read: a live writer rotated
+        it away, and a new listing holds a newer one. Not a corruption, so no warning."""
         warnings = []
         for step in reversed(steps):
+            path = self.directory / str(step)
             try:
                 meta = self.read_meta(step)
             except Exception as exc:  # noqa: BLE001 - any read failure means this one is unusable
-                warnings.append(f"checkpoint {self.directory / str(step)} is unreadable ({type(exc).__name__}: {exc})")
+                if not path.exists():
+                    return _VANISHED, warnings
+                warnings.append(f"checkpoint {path} is unreadable ({type(exc).__name__}: {exc})")
                 continue
             if check_meta is not None:
                 check_meta(meta)
             try:
-                state, meta = self.restore(step, like)
+                return self.restore(step, like), warnings
             except Exception as exc:  # noqa: BLE001
-                warnings.append(f"checkpoint {self.directory / str(step)} is corrupt ({type(exc).__name__}: {exc})")
-                continue
-            return state, meta, warnings
-        raise CheckpointError(
-            f"every checkpoint in {self.directory} is corrupt or unreadable:\n  " + "\n  ".join(warnings)
-        )
+                if not path.exists():
+                    return _VANISHED, warnings
+                warnings.append(f"checkpoint {path} is corrupt ({type(exc).__name__}: {exc})")
+        return None, warnings

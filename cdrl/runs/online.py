@@ -127,7 +127,7 @@ def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = 10_0
     game, env_params = run_game(cfg)
     like = jax.eval_shape(lambda: init_online(variant, game, env_params, OnlineConfig(cfg.batch, cfg.unroll),
                                               jax.random.PRNGKey(cfg.seed), hparams(cfg)))
-    state, _, warnings = run.checkpoints().restore_latest_good(like)
+    state, _, warnings = run.read_checkpoints().restore_latest_good(like)
     for w in warnings:
         print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
     return compare_policies(variant, state.train.params, game, env_params, episodes or cfg.eval_episodes,

@@ -159,6 +159,10 @@ class RunDir:
         """The run's checkpoints; `primary`: the process that writes their metadata."""
         return Checkpoints(self.checkpoint_dir, keep=keep, primary=primary)
 
+    def read_checkpoints(self) -> Checkpoints:
+        """The run's checkpoints for reading only, safe beside a writer that is still training."""
+        return Checkpoints(self.checkpoint_dir, read_only=True)
+
     def open(self, cfg: RunConfig, state, resume: bool, write: bool = True) -> Opened:
         """Write the config and, when resuming, restore `state` from the last good checkpoint
         (an older one if the newest is corrupt) and cut the logs back to it. With several
