@@ -25,8 +25,9 @@ demo: $(STAMP)
 	$(VENV)/bin/cdrl eval $(DEMO)
 	$(VENV)/bin/cdrl plot $(DEMO)
 
+# Two workers, a test file each at a time (a file's module fixtures are built once).
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest -n 2 --dist loadfile
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/env_throughput.py --quick
