@@ -52,11 +52,7 @@ class Checkpoints:
         self.primary = primary
         self.read_only = read_only
         if read_only:
-            # Without `lightweight_initialize` the manager reads every checkpoint's metadata at
-            # construction and fails on one that the writer removes meanwhile.
-            options = ocp.CheckpointManagerOptions(read_only=True, lightweight_initialize=True,
-                                                   enable_async_checkpointing=False)
-            self.manager = ocp.CheckpointManager(self.directory, options=options)
+            self.manager = self._open_reader()
             return
         if primary == 0:
             options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
@@ -69,11 +65,27 @@ class Checkpoints:
                     "meta": ocp.JsonCheckpointHandler(multiprocessing_options=processes)}
         self.manager = ocp.CheckpointManager(self.directory, options=options, item_handlers=handlers)
 
+    def _open_reader(self) -> ocp.CheckpointManager:
+        """A read-only manager. Without `lightweight_initialize` it would read every checkpoint's
+        metadata when it lists them (orbax's `reload` too) and fail on one that the writer
+        removes meanwhile. Orbax warns that read-only mode is on; that is no news here."""
+        options = ocp.CheckpointManagerOptions(read_only=True, lightweight_initialize=True, save_interval_steps=0,
+                                               create=False, enable_async_checkpointing=False)
+        absl = logging.getLogger("absl")
+        level = absl.level
+        absl.setLevel(logging.ERROR)
+        try:
+            return ocp.CheckpointManager(self.directory, options=options)
+        finally:
+            absl.setLevel(level)
+
     def _is_primary(self) -> bool:
         return jax.process_index() == self.primary
 
     def steps(self) -> list[int]:
-        return sorted(self.manager.all_steps(read=self.read_only))
+        if self.read_only:  # a fresh listing: a live writer saves and rotates meanwhile
+            self.manager = self._open_reader()
+        return sorted(self.manager.all_steps())
 
     def save(self, step: int, state, meta: dict[str, Any]) -> None:
         """Save `state` as checkpoint `step`, replacing a stale one of the same step (left by a
