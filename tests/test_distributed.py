@@ -37,12 +37,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _flags_without_device_count() -> str:
+    """This session's XLA flags (tests/conftest.py) less any host device count."""
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    return " ".join(f for f in flags if not f.startswith("--xla_force_host_platform_device_count"))
+
+
 def _start(count: int, *args: str) -> list[subprocess.Popen]:
     """`count` processes of `cdrl ARGS --distributed`, joined on a localhost coordinator."""
     port = _free_port()
     procs = []
     for i in range(count):
-        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        env = {**os.environ, "XLA_FLAGS": _flags_without_device_count()}
         env.update(JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"localhost:{port}", JAX_NUM_PROCESSES=str(count),
                    JAX_PROCESS_ID=str(i))
         procs.append(subprocess.Popen([sys.executable, "-m", "cdrl.cli", *args, "--distributed"], env=env,
@@ -183,7 +189,8 @@ def test_sharded_sweep_and_data_parallel_step_equal_one_device(tmp_path):
     padded to four; one diverges; a two-stage variant too) trains exactly what the vmapped
     one-device sweep trains, and the data-parallel step (B split over the devices, gradients
     all-reduced) equals the one-device step."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "XLA_FLAGS": f"{_flags_without_device_count()} --xla_force_host_platform_device_count=2",
+           "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", TWO_DEVICES, str(tmp_path)], env=env, capture_output=True,
                           text=True, timeout=TIMEOUT)
     assert proc.returncode == 0, proc.stderr[-3000:]
