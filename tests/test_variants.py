@@ -1,5 +1,5 @@
 """Every variant: its unroll equals a Python loop over its step, its gradients are right,
-and its data flow is the one of SPEC section 4."""
+and its data flow is the one of the thesis (chapter 4; figures 3.2-3.5, 4.2-4.7, 6.1)."""
 import functools
 
 import jax
@@ -47,7 +47,7 @@ def test_unroll_equals_python_loop(name):
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), carry_scan, carry)
 
 
-# The sign of the fed-back prediction in x_t = o_t + sign * õ_t (SPEC section 4, figures 4.6,
+# The sign of the fed-back prediction in x_t = o_t + sign * õ_t (thesis chapter 4, figures 4.6,
 # 4.7 and 6.1), written out here rather than read from the classes.
 CLOSED_LOOP_SIGNS = {"closed_loop_plus": 1.0, "closed_loop_minus": -1.0, "final_proposal": -1.0}
 

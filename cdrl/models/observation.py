@@ -1,4 +1,4 @@
-"""The observation-predicting variants of the thesis (SPEC section 4), each a pure step
+"""The thesis's observation-predicting variants (chapter 4; figures 3.2, 3.3, 4.2-4.7), each a pure step
 function scanned over time: baseline_ff, baseline_recurrent, main, main_action, residual,
 residual_error, closed_loop_plus, closed_loop_minus. The controller variants are in
 `cdrl.models.controller`; the registry of both is `cdrl.models.VARIANTS`.
