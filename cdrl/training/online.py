@@ -23,13 +23,11 @@ from typing import Any
 import flax.struct
 import jax
 import jax.numpy as jnp
-import optax
 
 from cdrl.data.frames import copy_last_bce, resize_obs, target_entropy
 from cdrl.models.base import StepInput, Variant, bce_with_logits
-from cdrl.training.monitor import NormRatioState
-from cdrl.training.optim import OptHParams, init_opt_state, make_optimizer
-from cdrl.training.step import TrainState, all_finite, run_once, watched_groups
+from cdrl.training.optim import OptHParams, init_opt_state
+from cdrl.training.step import TrainState, guarded_update, run_once
 
 SCOPES = ("controller", "all")
 
@@ -191,20 +189,11 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
     (g_model,) = vjp((jnp.ones(()), jnp.zeros(())))
     (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
     grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _ascent_scope(g_reward, hp.ascent_all))
-    tx = make_optimizer(hp.opt)
-    updates, opt_state = tx.update(grads, state.train.opt_state, params)
-    new_params = optax.apply_updates(params, updates)
-    monitor: NormRatioState = opt_state[0]
-    ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
-    finite = jnp.isfinite(model_loss) & all_finite(grads) & all_finite(new_params)
-    watched = jnp.where(watched_groups(params), jnp.where(jnp.isfinite(ratios), ratios, jnp.inf), 0.0)
-    max_ratio = jnp.max(watched)
-    diverged = ~finite | (max_ratio > hp.diverge_threshold)
+    new_params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, params, state.train.opt_state, grads,
+                                                  model_loss)
+    # A refused update keeps the old parameters; the games go on.
     train = new_state.train.replace(params=new_params, opt_state=opt_state, step=state.train.step + 1)
-    updated = new_state.replace(train=train)
-    # On divergence keep the old parameters but let the games go on.
-    kept = new_state.replace(train=new_state.train.replace(step=state.train.step + 1))
-    out_state = jax.tree.map(lambda n, o: jnp.where(diverged, o, n), updated, kept)
+    out_state = new_state.replace(train=train)
     finished = jnp.sum(stats["done"])
     metrics = {
         "loss": model_loss - lam * pred_reward,
@@ -216,11 +205,7 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
         "action_mean": jnp.mean(stats["action"], axis=(0, 1)),
         "noise_std": noise_std,
         "ascent_on": active,
-        "ratios": ratios,
-        "max_ratio": max_ratio,
-        "worst_group": jnp.argmax(watched),
-        "finite": finite,
-        "diverged": diverged,
+        **guard,
     }
     return out_state, metrics
 

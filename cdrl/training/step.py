@@ -24,7 +24,7 @@ from cdrl.data.frames import as_float
 from cdrl.data.stream import Chunk
 from cdrl.models.base import StepInput, Variant
 from cdrl.training.monitor import NormRatioState, group_names
-from cdrl.training.optim import HParams, init_opt_state, make_optimizer
+from cdrl.training.optim import HParams, OptHParams, init_opt_state, make_optimizer
 
 
 @flax.struct.dataclass
@@ -97,33 +97,38 @@ def watched_groups(params) -> jax.Array:
     return jnp.array([leaf.ndim >= 2 for leaf in jax.tree.leaves(params)])
 
 
+def guarded_update(opt: OptHParams, threshold: jax.Array, params, opt_state, grads, loss: jax.Array):
+    """One optimiser update behind the divergence guard. The update is refused when the loss,
+    a gradient or an updated parameter is not finite, or when a watched group's norm ratio
+    ||grad|| / ||param|| exceeds `threshold`: then the old parameters and optimiser state come
+    back. Returns `(params, opt_state, metrics)` with the monitor's `ratios` (every group, in
+    `group_names` order), `max_ratio` and `worst_group` (over the watched groups), `finite`
+    and `diverged`."""
+    updates, new_opt_state = make_optimizer(opt).update(grads, opt_state, params)
+    new_params = optax.apply_updates(params, updates)
+    monitor: NormRatioState = new_opt_state[0]
+    ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
+    safe = jnp.where(jnp.isfinite(ratios), ratios, jnp.inf)
+    safe = jnp.where(watched_groups(params), safe, 0.0)
+    finite = jnp.isfinite(loss) & all_finite(grads) & all_finite(new_params)
+    max_ratio = jnp.max(safe)
+    diverged = ~finite | (max_ratio > threshold)
+    keep = lambda new, old: jax.tree.map(lambda n, o: jnp.where(diverged, o, n), new, old)  # noqa: E731
+    metrics = {"ratios": ratios, "max_ratio": max_ratio, "worst_group": jnp.argmax(safe), "finite": finite,
+               "diverged": diverged}
+    return keep(new_params, params), keep(new_opt_state, opt_state), metrics
+
+
 def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk):
     """The un-jitted train step (for `vmap`/`scan` compositions); see `train_step`."""
     grad_fn = jax.value_and_grad(functools.partial(chunk_loss, variant), has_aux=True)
     (loss, (carry, terms, _)), grads = grad_fn(state.params, state.carry, hp, chunk)
-    updates, opt_state = make_optimizer(hp.opt).update(grads, state.opt_state, state.params)
-    params = optax.apply_updates(state.params, updates)
-
-    monitor: NormRatioState = opt_state[0]
-    ratios = jnp.stack(jax.tree.leaves(monitor.ratios))
-    safe = jnp.where(jnp.isfinite(ratios), ratios, jnp.inf)
-    safe = jnp.where(watched_groups(state.params), safe, 0.0)
-    finite = jnp.isfinite(loss) & all_finite(grads) & all_finite(params)
-    max_ratio = jnp.max(safe)
-    diverged = ~finite | (max_ratio > hp.diverge_threshold)
-
-    new = TrainState(params=params, opt_state=opt_state, carry=carry, step=state.step + 1)
-    state = jax.tree.map(lambda n, o: jnp.where(diverged, o, n), new, state)
-    metrics = {
-        "loss": loss,
-        "terms": terms,
-        "ratios": ratios,
-        "max_ratio": max_ratio,
-        "worst_group": jnp.argmax(safe),
-        "finite": finite,
-        "diverged": diverged,
-    }
-    return state, metrics
+    params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, state.params, state.opt_state, grads, loss)
+    # A refused step leaves the whole state as it was, the streams' carries included.
+    carry = jax.tree.map(lambda n, o: jnp.where(guard["diverged"], o, n), carry, state.carry)
+    step = state.step + jnp.where(guard["diverged"], 0, 1)
+    state = TrainState(params=params, opt_state=opt_state, carry=carry, step=step)
+    return state, {"loss": loss, "terms": terms, **guard}
 
 
 train_step = jax.jit(train_step_fn, static_argnums=0, donate_argnums=1)
