@@ -12,6 +12,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from cdrl.data.atomic import atomic_write_text
+
 
 def spread(values) -> dict:
     """min / median / max of per-repeat figures, as floats."""
@@ -20,15 +22,13 @@ def spread(values) -> dict:
 
 
 def emit(result: dict, out: str | Path | None) -> str:
-    """Print `result` as one JSON line; with `out`, also write it there (a temporary file
-    renamed into place, so an interrupted write leaves the previous result whole)."""
+    """Print `result` as one JSON line; with `out`, also write it there (atomically,
+    `cdrl.data.atomic`: an interrupted write leaves the previous result whole)."""
     line = json.dumps(result)
     if out:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(line + "\n")
-        os.replace(tmp, out)
+        atomic_write_text(out, line + "\n")
     print(line)
     return line
 

@@ -13,17 +13,15 @@
 - `bce_bars.png`: train vs held-out BCE per run, with the copy-last-frame baseline (fig 5.9).
 
 Every figure has a fixed size in inches (the `*_SIZE` constants and functions) at `DPI`, so a
-figure's pixel size is known in advance. Files appear atomically (a temporary file in the same
-directory, then `os.replace`). Matplotlib's object API is used directly, without pyplot, so no
-global backend state is touched.
+figure's pixel size is known in advance. Files appear atomically (`cdrl.data.atomic`: a
+temporary file in the same directory, then a rename). Matplotlib's object API is used
+directly, without pyplot, so no global backend state is touched.
 """
 from __future__ import annotations
 
 import functools
 import itertools
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -35,6 +33,7 @@ from matplotlib.figure import Figure
 
 from cdrl.analysis.report import (Model, Run, evaluate_model, load_run, restore_model, run_episodes, running_mean,
                                   training_loss)
+from cdrl.data.atomic import atomic_write
 from cdrl.evaluation.metrics import excess_ratio
 from cdrl.models.base import StepInput, Variant
 from cdrl.runs.checkpoint import CheckpointError
@@ -64,15 +63,7 @@ def save_figure(fig: Figure, path: Path) -> Path:
     """Write `fig` as a PNG at `DPI` to `path` atomically: readers see the old file or the
     complete new one, never a partial one."""
     FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format="png", dpi=DPI)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=DPI), mode=0o644)
     return path
 
 

@@ -22,20 +22,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cdrl.data.atomic import atomic_write_text  # noqa: F401  (re-exported: how a run's files are written)
 from cdrl.data.lock import DirLock
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
 from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write `text` to `path` through a temporary file and a rename: readers see the old or
-    the new content, never a part."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 class RunLog:
