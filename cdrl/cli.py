@@ -177,7 +177,8 @@ def _cmd_plot(args) -> int:
 
 
 def _cmd_collect(args) -> int:
-    from cdrl.data import gymrec, store
+    from cdrl.data import gymrec
+    from cdrl.data.collect import collect
 
     try:
         if args.env:
@@ -188,8 +189,8 @@ def _cmd_collect(args) -> int:
             for name in ("obs", "crop", "env_kwargs"):
                 if getattr(args, name):
                     raise ValueError(f"--{name.replace('_', '-')} is for a gymnasium game (--env ID)")
-            store.collect(Path(args.out), args.episodes, policy=args.policy or "behaviour", seed=args.seed,
-                          max_steps=args.episode_steps, obs_size=args.obs_size)
+            collect(Path(args.out), args.episodes, policy=args.policy or "behaviour", seed=args.seed,
+                    max_steps=args.episode_steps, obs_size=args.obs_size)
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
         return 2

@@ -1,4 +1,6 @@
-"""Tests of the on-disk episode data set (cdrl.data.store)."""
+"""Tests of the on-disk episode data set: its format and reader (cdrl.data.store), atomic writes
+(cdrl.data.atomic), the resumable writer (cdrl.data.writer), collection (cdrl.data.collect) and
+recording (cdrl.data.gymrec)."""
 
 from __future__ import annotations
 
@@ -11,9 +13,13 @@ import numpy as np
 import pytest
 
 from cdrl.data import store as ds
+from cdrl.data.atomic import atomic_write, atomic_write_text
 from cdrl.data.episode import Episode
 from cdrl.data.lock import LOCK_NAME
-from cdrl.data.store import DatasetError, EpisodeDataset, collect, record_gym, split_episodes
+from cdrl.data.collect import collect
+from cdrl.data.gymrec import record_gym
+from cdrl.data.store import DatasetError, EpisodeDataset, split_episodes
+from cdrl.data.writer import Writer
 from envs import fastrng
 from envs.policies import get_policy
 from envs.gym_env import game_for
@@ -149,7 +155,7 @@ def test_resume_skips_present_episodes_and_reproduces_them(tmp_path, monkeypatch
     full = tmp_path / "full"
     part = tmp_path / "part"
     small_collect(full)
-    real_write = ds._Writer.write
+    real_write = Writer.write
     written = []
 
     def stop_after_five(self, index, episode, compress=True):
@@ -158,13 +164,13 @@ def test_resume_skips_present_episodes_and_reproduces_them(tmp_path, monkeypatch
         written.append(index)
         real_write(self, index, episode, compress)
 
-    monkeypatch.setattr(ds._Writer, "write", stop_after_five)
+    monkeypatch.setattr(Writer, "write", stop_after_five)
     with pytest.raises(KeyboardInterrupt):
         small_collect(part)
     listed = json.loads((part / "manifest.json").read_text())["episodes"]
     assert len(listed) == 4 and not json.loads((part / "manifest.json").read_text())["complete"]
     written.clear()
-    monkeypatch.setattr(ds._Writer, "write", lambda self, i, e, c=True: (written.append(i), real_write(self, i, e, c)))
+    monkeypatch.setattr(Writer, "write", lambda self, i, e, c=True: (written.append(i), real_write(self, i, e, c)))
     manifest = small_collect(part)
     assert written == [5]
     assert manifest["complete"] and len(manifest["episodes"]) == 6
@@ -236,3 +242,32 @@ def test_record_gym_with_preprocess_options(tmp_path):
     with pytest.raises(DatasetError, match="seed"):
         record_gym(TinyPixels(), tmp_path, 4, policy, preprocess_kwargs=kwargs, seed=2)
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp-")]
+
+
+def test_atomic_write_replaces_whole_or_not_at_all_with_the_asked_permissions(tmp_path):
+    path = tmp_path / "results.json"
+    atomic_write_text(path, "old ✓\n")
+    assert path.read_bytes() == "old ✓\n".encode()
+    umask = os.umask(0o022)
+    try:
+        atomic_write_text(path, "new\n")
+        assert path.stat().st_mode & 0o777 == 0o644  # as open() would: 0o666 less the umask
+        atomic_write(path, lambda f: f.write(b"private"), mode=0o600)
+        assert path.read_bytes() == b"private" and path.stat().st_mode & 0o777 == 0o600
+        os.umask(0o077)
+        atomic_write(path, lambda f: f.write(b"figure"), mode=0o644)  # exactly the mode, whatever the umask
+        assert path.stat().st_mode & 0o777 == 0o644
+    finally:
+        os.umask(umask)
+
+    def fails_halfway(f):
+        f.write(b"half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left"):
+        atomic_write(path, fails_halfway)
+    assert path.read_bytes() == b"figure" and sorted(os.listdir(tmp_path)) == ["results.json"]
+    # Episode files and manifests: whole files, readable by their owner only (as ever).
+    small_collect(tmp_path / "data", num_episodes=2, max_steps=4)
+    files = [p for p in (tmp_path / "data").iterdir() if p.name != LOCK_NAME]
+    assert files and {p.stat().st_mode & 0o777 for p in files} == {0o600}

@@ -153,14 +153,14 @@ def test_a_sweep_locks_its_configurations(tmp_path, capsys):
 
 
 def test_a_collection_locks_its_data_set(tmp_path):
-    from cdrl.data import store
+    from cdrl.data.collect import collect
 
     out = tmp_path / "data"
     proc = _start("collect", str(out), "--episodes", "400", "--episode-steps", "30", "--obs-size", "16")
     _wait_for(proc, lambda: (out / LOCK_NAME).exists() and (out / LOCK_NAME).read_text().strip() == str(proc.pid),
               "the collection's lock")
     with pytest.raises(LockedError, match=rf"data set {out} is in use by pid {proc.pid}"):
-        store.collect(out, 400, max_steps=30, obs_size=16)
+        collect(out, 400, max_steps=30, obs_size=16)
     _kill(proc)
 
 
@@ -178,7 +178,7 @@ def _episodes(n: int, length: int = 30, size: int = 16, action_dim: int = 3, see
 
 
 def _dataset(path: Path, n: int = 8, **kwargs) -> Path:
-    from cdrl.data.store import save_dataset
+    from cdrl.data.writer import save_dataset
 
     save_dataset(path, _episodes(n, **kwargs), test_fraction=0.25)
     return path

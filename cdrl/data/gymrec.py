@@ -6,19 +6,22 @@ thesis's pre-processing (`envs.preprocess.preprocess`: a crop, block means down 
 of `size`, the max over colour channels). Actions are recorded as vectors in [0, 1], as the
 models take them: a Discrete(n) action as its one-hot vector (n values; the env gets the
 argmax), a Box action rescaled from its bounds (the env gets low + a (high - low)), a
-MultiBinary one as is (the env gets a > 0.5). The recording itself is
-`cdrl.data.store.record_gym`: atomic episode files, a manifest, resumable, locked.
+MultiBinary one as is (the env gets a > 0.5). The recording itself is `record_gym` (for any
+environment object and policy): atomic episode files, a manifest, resumable, locked
+(`cdrl.data.writer`).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from cdrl.data import store
+from cdrl.data.episode import Episode
+from cdrl.data.writer import Writer, write_set
 
 OBS_MODES = ("image", "render")
 POLICIES = ("uniform",)
@@ -158,7 +161,7 @@ def record_env(env_id: str, out_dir: str | Path, episodes: int, size: int = 64, 
         def uniform(_obs, rng):
             return codec.sample(rng)
 
-        return store.record_gym(
+        return record_gym(
             env, out_dir, episodes, uniform, preprocess_kwargs={"crop": box, "out_size": (size, size)}, seed=seed,
             max_steps=max_steps, test_fraction=test_fraction, action_fn=codec.decode,
             config_extra={"env_kwargs": env_kwargs or {}, "obs": obs, "action_space": codec.space})
@@ -172,3 +175,101 @@ def _check_crop(box: tuple[int, ...], height: int, width: int, size: int) -> Non
         raise ValueError(f"--crop {list(box)} does not fit in the {height}x{width} frames")
     if h % size or w % size:
         raise ValueError(f"--crop {list(box)}: its height and width must be multiples of the output size {size}")
+
+
+def record_gym(
+    env,
+    out_dir: str | os.PathLike,
+    num_episodes: int,
+    policy_fn: Callable[[np.ndarray, np.random.Generator], np.ndarray],
+    preprocess_kwargs: dict | None = None,
+    seed: int = 0,
+    max_steps: int | None = None,
+    test_fraction: float = 0.1,
+    action_fn: Callable[[np.ndarray], Any] | None = None,
+    compress: bool = True,
+    config_extra: dict | None = None,
+) -> dict:
+    """Records episodes of any gymnasium environment with image observations.
+
+    Observations ([H, W, C] or [H, W] images, uint8 or float in [0, 1]) are
+    pre-processed with :func:`envs.preprocess.preprocess` (``preprocess_kwargs``:
+    ``crop`` and ``out_size``; the defaults suit a 500 x 300 frame) and stored as
+    uint8.  Writing, resuming and the manifest work as in :func:`cdrl.data.collect.collect`.
+
+    Args:
+      env: a gymnasium environment.
+      out_dir: data set directory.
+      num_episodes: number of episodes.
+      policy_fn: ``policy_fn(raw_obs, rng) -> action``: a 1-D array of values in
+        [0, 1], which is what gets recorded.
+      preprocess_kwargs: options for :func:`envs.preprocess.preprocess`.
+      seed: episode ``i`` resets the environment with ``seed + i`` and gives the
+        policy ``np.random.default_rng([seed, i])``.
+      max_steps: stop an episode after this many steps (None = until the
+        environment ends it).
+      test_fraction: share of episodes held out as the test split.
+      action_fn: maps the recorded action to what ``env.step`` takes (default:
+        the action itself).
+      compress: write compressed ``.npz`` files.
+      config_extra: more of what defines the recording (the environment's options,
+        the observation mode), stored in the manifest's config and checked on resume.
+    Returns:
+      The manifest.
+    """
+    kwargs = dict(preprocess_kwargs or {})
+    spec = getattr(env, "spec", None)
+    config = {
+        "source": "gym",
+        "env": spec.id if spec is not None else type(env.unwrapped).__name__,
+        "policy": getattr(policy_fn, "__name__", type(policy_fn).__name__),
+        "seed": int(seed),
+        "preprocess": {k: list(v) if isinstance(v, tuple) else v for k, v in kwargs.items()},
+        "max_steps": None if max_steps is None else int(max_steps),
+        "test_fraction": float(test_fraction),
+        "num_episodes": int(num_episodes),
+        **(config_extra or {}),
+    }
+    return write_set(out_dir, config,
+                      lambda writer: _record(writer, env, policy_fn, kwargs, int(seed), max_steps, action_fn, compress))
+
+
+def _record(writer: Writer, env, policy_fn, kwargs: dict, seed: int, max_steps: int | None, action_fn,
+            compress: bool) -> None:
+    """Plays and writes the episodes ``writer`` is missing (the body of :func:`record_gym`)."""
+    from envs.preprocess import preprocess
+
+    def to_frame(obs) -> np.ndarray:
+        obs = np.asarray(obs)
+        if obs.ndim == 2:
+            obs = obs[..., None]
+        return np.round(preprocess(obs, **kwargs) * 255.0).astype(np.uint8)
+
+    for index in writer.missing:
+        rng = np.random.default_rng([int(seed), index])
+        obs, _ = env.reset(seed=int(seed) + index)
+        frames, actions, rewards = [], [], [0.0]
+        steps = 0
+        while True:
+            action = np.asarray(policy_fn(obs, rng), np.float32).reshape(-1)
+            frames.append(to_frame(obs))
+            actions.append(action)
+            if max_steps is not None and steps >= max_steps:
+                break
+            obs, reward, terminated, truncated, _ = env.step(
+                action if action_fn is None else action_fn(action)
+            )
+            steps += 1
+            if terminated or truncated:
+                frames.append(to_frame(obs))
+                actions.append(np.asarray(policy_fn(obs, rng), np.float32).reshape(-1))
+                rewards.append(float(reward))
+                break
+            rewards.append(float(reward))
+        episode = Episode(
+            frames=np.stack(frames),
+            actions=np.stack(actions).astype(np.float32),
+            rewards=np.asarray(rewards[:len(frames)], np.float32),
+        )
+        writer.write(index, episode, compress)
+        writer.flush()

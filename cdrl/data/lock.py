@@ -8,7 +8,7 @@ Locks belong to an open file, not to a process, so a second `DirLock` on the sam
 in the same process is refused too.
 
 Run directories (`cdrl.runs.rundir.RunDir.lock`) and data set directories
-(`cdrl.data.store`) use it; readers never take it.
+(`cdrl.data.writer`) use it; readers never take it.
 """
 from __future__ import annotations
 

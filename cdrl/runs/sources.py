@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from cdrl.data import store, synthetic
+from cdrl.data.collect import collect
 from cdrl.data.episode import Episode
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
@@ -57,8 +58,8 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
     if cfg.data == "game":
         policy = "uniform" if uses_action else "behaviour"
         path = cache_root / _cache_name(cfg, policy, cfg.episodes)
-        store.collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
-                      env_params=game_params(cfg))
+        collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
+                env_params=game_params(cfg))
     else:
         path = Path(cfg.data)
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
