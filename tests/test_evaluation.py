@@ -7,9 +7,10 @@ import pytest
 
 from cdrl.data.episode import Episode
 from cdrl.data.synthetic import synthetic_episodes
-from cdrl.data.frames import COPY_EPS
+from cdrl.data.frames import COPY_EPS, pixel_bce
 from cdrl.evaluation.metrics import evaluate, excess_ratio
 from cdrl.models import TINY, StepInput, make_variant
+from cdrl.models.base import bce_with_logits
 
 
 def _episodes():
@@ -57,6 +58,26 @@ def test_evaluation_equals_a_direct_computation():
     assert got["copy_bce"] == pytest.approx(copy_bce, rel=1e-5)
     assert got["target_entropy"] == pytest.approx(floor, rel=1e-5)
     assert got["excess_ratio"] == pytest.approx((bce - floor) / (copy_bce - floor), rel=1e-4)
+
+
+def test_the_training_loss_and_the_per_frame_score_are_one_bce():
+    """`bce_with_logits` (the loss: the mean over everything) is the mean of `pixel_bce` (the
+    score: a mean per frame), and both are the binary cross-entropy of sigmoid(logits), also
+    where the logits saturate."""
+    rng = np.random.default_rng(0)
+    logits = rng.normal(0, 3, (4, 3, 16, 16)).astype(np.float32)
+    logits[0, 0, :2] = [[-40.0] * 16, [40.0] * 16]
+    target = rng.uniform(0, 1, logits.shape).astype(np.float32)
+    l, t = logits.astype(np.float64), target.astype(np.float64)
+    exact = np.logaddexp(0, l) - t * l  # -t log p - (1 - t) log(1 - p), p = sigmoid(l)
+    per_frame = np.asarray(pixel_bce(jnp.asarray(logits), jnp.asarray(target)))
+    loss = float(bce_with_logits(jnp.asarray(logits), jnp.asarray(target)))
+    assert per_frame.shape == (4, 3)
+    np.testing.assert_allclose(per_frame, exact.mean(axis=(-2, -1)), rtol=1e-6)
+    assert loss == pytest.approx(exact.mean(), rel=1e-6)
+    assert loss == pytest.approx(float(np.mean(per_frame, dtype=np.float64)), rel=1e-6)
+    p = 1 / (1 + np.exp(-l[1:]))
+    np.testing.assert_allclose(exact[1:], -(t[1:] * np.log(p) + (1 - t[1:]) * np.log1p(-p)), rtol=1e-9, atol=1e-12)
 
 
 def test_excess_ratio_reads_as_documented():

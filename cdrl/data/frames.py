@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from cdrl.models.base import elementwise_bce
+
 
 def as_float(frames: jax.Array) -> jax.Array:
     """uint8 frames to [0, 1]; float frames unchanged."""
@@ -20,7 +22,7 @@ COPY_EPS = 0.01
 
 def pixel_bce(logits: jax.Array, target: jax.Array) -> jax.Array:
     """Per-frame mean BCE of sigmoid(logits) against `target` in [0, 1] (over the last two axes)."""
-    return jnp.mean(jax.nn.softplus(logits) - target * logits, axis=(-2, -1))
+    return jnp.mean(elementwise_bce(logits, target), axis=(-2, -1))
 
 
 def copy_last_bce(obs: jax.Array, target: jax.Array) -> jax.Array:

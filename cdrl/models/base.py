@@ -48,9 +48,16 @@ def reset_where(is_first: jax.Array, initial: Carry, carry: Carry) -> Carry:
     return jax.tree.map(pick, initial, carry)
 
 
+def elementwise_bce(logits: jax.Array, target: jax.Array) -> jax.Array:
+    """Binary cross-entropy of sigmoid(logits) against `target` in [0, 1], element by element:
+    -t log sigmoid(l) - (1 - t) log(1 - sigmoid(l)) = softplus(l) - t l. The one place the
+    formula is written: `bce_with_logits` here and `cdrl.data.frames.pixel_bce` average it."""
+    return jax.nn.softplus(logits) - target * logits
+
+
 def bce_with_logits(logits: jax.Array, target: jax.Array) -> jax.Array:
     """Binary cross-entropy of sigmoid(logits) against `target` in [0, 1], averaged."""
-    return jnp.mean(jax.nn.softplus(logits) - target * logits)
+    return jnp.mean(elementwise_bce(logits, target))
 
 
 def _flat(fn, x: jax.Array, n_trailing: int) -> jax.Array:
@@ -71,6 +78,12 @@ class Variant:
     shared_code_space: ClassVar[bool] = False
     # Variants with a controller D_a; `cdrl train` trains them online against the game.
     has_controller: ClassVar[bool] = False
+    # The parameter groups of the controller (what a reward ascent of scope "controller" changes).
+    controller_groups: ClassVar[tuple[str, ...]] = ()
+    # Variants with a reward head D_r: their outputs carry `reward`, r̃_{t+1}.
+    predicts_reward: ClassVar[bool] = False
+    # Variants trained in stages of loss weights (`stage_loss_weights`), one after another.
+    stages: ClassVar[bool] = False
 
     # ---- parameters and carries
     def init(self, key: jax.Array) -> dict:
@@ -117,6 +130,10 @@ class Variant:
         return jax.lax.scan(lambda c, x: self.step(params, c, x), carry, xs)
 
     # ---- losses
+    def stage_loss_weights(self) -> tuple[dict[str, float], ...]:
+        """The loss weights of each training stage, for variants with `stages`."""
+        raise NotImplementedError
+
     def default_loss_weights(self) -> dict[str, float]:
         weights = {"obs_bce": 1.0}
         if self.shared_code_space:
