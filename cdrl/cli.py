@@ -268,7 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--obs-size", type=int, default=150,
                      help="side of the square observation: 64 for the small preset, 16 for tiny (default: 150)")
     col.add_argument("--env", metavar="ID", default=None,
-                     help="record this registered gymnasium game instead of the built-in one, e.g. CartPole-v1 "
+                     help="record this registered gymnasium game instead of the built-in one, e.g. CartPole-v1, or "
+                          "ALE/Pong-v5 with ale-py installed; MODULE:ID imports MODULE first, for a game that a "
+                          "package registers when imported (gymnasium's module:ID form, e.g. ale_py:ALE/Pong-v5) "
                           "(Discrete actions are recorded one-hot, Box actions rescaled to [0, 1]) (default: none)")
     col.add_argument("--obs", choices=OBS_MODES, default=None,
                      help="with --env: record the observations (image) or env.render() frames of "

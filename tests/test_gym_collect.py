@@ -1,13 +1,17 @@
 """`cdrl collect DIR --env ID`: any registered gymnasium game as a data set (CartPole-v1's
 Discrete actions one-hot, Pendulum-v1's Box actions rescaled, both recorded from their
 rendered frames), and `cdrl train --data DIR` on it, the action variants sized from it."""
+import importlib.util
 import json
+import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 
 from cdrl.cli import main as cli_main
+from cdrl.data import gymrec
 from cdrl.data.gymrec import action_codec, make_env, parse_env_kwargs
 from cdrl.data.store import EpisodeDataset, load_episode
 from envs.preprocess import preprocess
@@ -92,3 +96,53 @@ def test_collect_box_actions_of_pendulum_rescaled_from_their_bounds(tmp_path):
     actions = np.concatenate([e.actions for e in data])
     assert actions.min() >= 0 and actions.max() <= 1 and actions.std() > 0.1
     _replays(out, "Pendulum-v1", lambda a: (-2.0 + 4.0 * a.astype(np.float64)).astype(np.float32))
+
+
+def test_a_game_named_in_gymnasiums_module_form_and_an_unknown_namespace(tmp_path, capsys):
+    env = make_env("gymnasium.envs.classic_control.cartpole:CartPole-v1", "render")
+    try:
+        assert env.spec.id == "CartPole-v1" and env.action_space == gym.spaces.Discrete(2)
+        assert env.observation_space.shape == (400, 600, 3)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="importing no_such_module, which registers it, failed: No module named"):
+        make_env("no_such_module:CartPole-v1", "render")
+    with pytest.raises(ValueError, match=r"Namespace Nope not found.* name it in the id: --env MODULE:Nope/Game-v0 "
+                                         r"\(gymnasium's module:ID form\)"):
+        make_env("Nope/Game-v0")
+    capsys.readouterr()
+    assert cli_main(["collect", str(tmp_path / "nope"), "--env", "Nope/Game-v0", "--episodes", "1"]) == 2
+    assert "--env MODULE:Nope/Game-v0 (gymnasium's module:ID form)" in capsys.readouterr().err
+    if importlib.util.find_spec("ale_py") is None:
+        with pytest.raises(ValueError, match=r"Namespace ALE not found.*: pip install ale-py$"):
+            make_env("ALE/Pong-v5")
+        with pytest.raises(ValueError, match=r"importing ale_py, which registers it, failed: .*\(pip install ale-py\)"):
+            make_env("ale_py:ALE/Pong-v5")
+    else:  # its package is imported first: no module:ID form needed
+        make_env("ALE/Pong-v5").close()
+
+
+def test_the_package_of_a_known_namespace_is_imported_before_its_game_is_made(monkeypatch):
+    """`NAMESPACE_PACKAGES` (ALE -> ale_py) at work, with a module in tests/ that registers a
+    game on import standing in for the package."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
+    from registers_games import GAME  # the game is unregistered and the module forgotten below
+
+    namespace = GAME.partition("/")[0]
+    try:
+        gym.registry.pop(GAME)
+        sys.modules.pop("registers_games")
+        with pytest.raises(ValueError, match=f"Namespace {namespace} not found.*module:ID form"):
+            make_env(GAME, "render")
+        monkeypatch.setitem(gymrec.NAMESPACE_PACKAGES, namespace, ("no_such_games", "no-such-games"))
+        with pytest.raises(ValueError, match=f"Namespace {namespace} not found.*: pip install no-such-games$"):
+            make_env(GAME, "render")
+        monkeypatch.setitem(gymrec.NAMESPACE_PACKAGES, namespace, ("registers_games", "registers-games"))
+        env = make_env(GAME, "render")
+        assert "registers_games" in sys.modules
+        assert env.spec.id == GAME and env.observation_space.shape == (400, 600, 3)
+        env.close()
+    finally:
+        gym.registry.pop(GAME, None)
+        sys.modules.pop("registers_games", None)
+

@@ -1,5 +1,12 @@
 """Any registered gymnasium game as a data set: `cdrl collect DIR --env ID`.
 
+`ID` is a registered id (`CartPole-v1`), or gymnasium's `module:ID` form: `module` is
+imported first, for a game that a package registers when it is imported (gymnasium 1.x
+imports no plugins by itself), e.g. `ale_py:ALE/Pong-v5`. The packages of known namespaces
+(`NAMESPACE_PACKAGES`: `ALE/` games come with `pip install ale-py`) are imported when they
+are installed, so `--env ALE/Pong-v5` works too; an id of an unknown namespace is an error
+naming the package to install or the `module:ID` form.
+
 A game's observations must be images, or it must render RGB frames (`--obs render` records
 `env.render()` of `render_mode="rgb_array"`, e.g. CartPole-v1). Frames go through the
 thesis's pre-processing (`envs.preprocess.preprocess`: a crop, block means down to a square
@@ -13,6 +20,8 @@ environment object and policy): atomic episode files, a manifest, resumable, loc
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import importlib.util
 import json
 import os
 from pathlib import Path
@@ -25,6 +34,9 @@ from cdrl.data.writer import Writer, write_set
 
 OBS_MODES = ("image", "render")
 POLICIES = ("uniform",)
+# Namespaces of gymnasium ids whose games a package registers when it is imported (gymnasium
+# 1.x loads no plugins by itself): namespace -> (the module to import, what to pip install).
+NAMESPACE_PACKAGES = {"ALE": ("ale_py", "ale-py")}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,9 +106,48 @@ def parse_env_kwargs(items: Sequence[str] | str | None) -> dict:
     return out
 
 
+def _namespace(env_id: str) -> str | None:
+    """The namespace of `env_id` ('ALE' of 'ALE/Pong-v5' and of 'ale_py:ALE/Pong-v5'; None without one)."""
+    name = env_id.partition(":")[2] if ":" in env_id else env_id
+    namespace, sep, _ = name.partition("/")
+    return namespace if sep else None
+
+
+def _import_registering_module(env_id: str) -> None:
+    """Imports the module that registers `env_id`: the one the id names (`module:ID`), else
+    the package of its namespace in `NAMESPACE_PACKAGES` when it is installed."""
+    module, sep, _ = env_id.partition(":")
+    namespace = _namespace(env_id)
+    if not sep:
+        if namespace not in NAMESPACE_PACKAGES or importlib.util.find_spec(NAMESPACE_PACKAGES[namespace][0]) is None:
+            return
+        module = NAMESPACE_PACKAGES[namespace][0]
+    try:
+        importlib.import_module(module)
+    except ImportError as exc:
+        install = {m: pip for m, pip in NAMESPACE_PACKAGES.values()}.get(module)
+        hint = f" (pip install {install})" if install else ""
+        raise ValueError(f"gymnasium environment {env_id!r}: importing {module}, which registers it, failed: "
+                         f"{exc}{hint}") from None
+
+
+def _namespace_fix(env_id: str) -> str:
+    """How to make the games of `env_id`'s unknown namespace known."""
+    namespace = _namespace(env_id)
+    if namespace in NAMESPACE_PACKAGES and ":" not in env_id:
+        return f"install the package that registers them: pip install {NAMESPACE_PACKAGES[namespace][1]}"
+    return (f"if a package registers them when it is imported, name it in the id: --env "
+            f"MODULE:{env_id.partition(':')[2] if ':' in env_id else env_id} (gymnasium's module:ID form)")
+
+
 def make_env(env_id: str, obs: str = "image", env_kwargs: dict | None = None):
     """The gymnasium game `env_id` (with `env_kwargs`), whose observations are images
-    (`obs` 'render': its rendered RGB frames). ValueError naming what is wrong."""
+    (`obs` 'render': its rendered RGB frames). ValueError naming what is wrong.
+
+    `env_id` is a registered id, or gymnasium's `module:ID` form (`module` is imported first,
+    for a game a package registers when imported). The package of a namespace in
+    `NAMESPACE_PACKAGES` (ALE: ale_py) is imported when it is installed; an unknown namespace
+    is an error saying what to install or how to name the module."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers cdrl/Slither-v0)
@@ -106,10 +157,13 @@ def make_env(env_id: str, obs: str = "image", env_kwargs: dict | None = None):
     kwargs = dict(env_kwargs or {})
     if obs == "render":
         kwargs.setdefault("render_mode", "rgb_array")
+    _import_registering_module(env_id)
     try:
         env = gym.make(env_id, **kwargs)
-    except (gym.error.NameNotFound, gym.error.NamespaceNotFound, gym.error.VersionNotFound,
-            gym.error.UnregisteredEnv) as exc:
+    except gym.error.NamespaceNotFound as exc:
+        raise ValueError(f"unknown gymnasium environment {env_id!r}: {exc} To record its games, "
+                         f"{_namespace_fix(env_id)}") from None
+    except (gym.error.NameNotFound, gym.error.VersionNotFound, gym.error.UnregisteredEnv) as exc:
         raise ValueError(f"unknown gymnasium environment {env_id!r}: {exc}") from None
     except gym.error.Error as exc:
         raise ValueError(f"gymnasium cannot make {env_id!r}: {exc}") from None
