@@ -2,13 +2,15 @@
 import json
 import math
 import shutil
+from types import SimpleNamespace
 
 import matplotlib.image
 import numpy as np
 import pytest
 
 from cdrl.cli import main as cli_main
-from cdrl.analysis.plots import DPI, plot_runs, resolve_groups
+from cdrl.analysis.plots import (DPI, Rollout, frame_range, plot_runs, prediction_figure, resolve_groups,
+                                 rollout_figure)
 from cdrl.analysis.report import eval_runs, running_mean
 from cdrl.runs.config import RunConfig
 from cdrl.runs.train import train_run
@@ -100,3 +102,34 @@ def test_ratio_groups_fall_back_to_the_deepest_layer_of_a_smaller_preset():
 def test_running_mean_averages_the_trailing_window():
     np.testing.assert_allclose(running_mean([1, 2, 3, 4, 5], 2), [1, 1.5, 2.5, 3.5, 4.5])
     np.testing.assert_allclose(running_mean([1, 2, 3], 100), [1, 1.5, 2])
+
+
+def test_frames_are_drawn_on_their_own_range_named_on_the_figure():
+    """A low-contrast game's frames (a recorded Atari frame lies in [0.5, 0.85]) use the whole
+    grey scale: the true frames, the predictions and the error each on their data's range,
+    which the panel's title (the rollout's row label) gives; frames spanning 0-1 keep 0-1."""
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0.5, 0.85, (6, 16, 16)).astype(np.float32)
+    frames[:, 0, :2] = [0.5, 0.85]
+    pred = np.full((5, 16, 16), 0.6)
+    pred[:, 0, :2] = [0.55, 0.7]
+    rollout = Rollout(frames=frames, logits=np.log(pred) - np.log1p(-pred), context=3)
+    run, model = SimpleNamespace(label="low contrast"), SimpleNamespace(step=7)
+
+    fig = prediction_figure(run, model, rollout)
+    input_ax, pred_ax, true_ax, error_ax = fig.axes[:4]
+    assert input_ax.images[0].get_clim() == pytest.approx((0.5, 0.85))
+    assert true_ax.images[0].get_clim() == pytest.approx((0.5, 0.85))
+    assert pred_ax.images[0].get_clim() == pytest.approx((0.55, 0.7))
+    assert error_ax.images[0].get_clim() == pytest.approx((0.0, np.abs(pred[2] - frames[3]).max()))
+    assert "[0.5, 0.85]" in true_ax.get_title() and "[0.55, 0.7]" in pred_ax.get_title()
+
+    fig = rollout_figure(run, model, rollout)
+    truth_row, pred_row = fig.axes[:3], fig.axes[3:6]
+    assert all(ax.images[0].get_clim() == pytest.approx((0.5, 0.85)) for ax in truth_row)
+    assert all(ax.images[0].get_clim() == pytest.approx((0.55, 0.7)) for ax in pred_row)
+    assert "[0.5, 0.85]" in truth_row[0].get_ylabel() and "[0.55, 0.7]" in pred_row[0].get_ylabel()
+
+    full = np.linspace(0, 1, 16 * 16).reshape(16, 16)
+    assert frame_range(full) == (0.0, 1.0) and frame_range(np.full((4, 4), 0.7)) == (0.0, 1.0)
+
