@@ -32,7 +32,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -71,9 +70,9 @@ def worker(setup: dict) -> None:
     axis = ConfigAxis.create(0, len(cfgs))
     episodes = synthetic_episodes(2 * setup["batch"], 4 * setup["unroll"] + 1, base.arch.image_size)
     streams = make_streams(held_configs(cfgs, axis), lambda c: episodes)
-    stamps: list[float] = []
-    run_grid(make_variant("main", base.arch), cfgs, streams, setup["warmup"] + setup["repeats"] * setup["steps"],
-             lambda step, metrics, seconds, states: stamps.append(time.perf_counter()), axis=axis)
+    result = run_grid(make_variant("main", base.arch), cfgs, streams,
+                      setup["warmup"] + setup["repeats"] * setup["steps"], axis=axis)
+    stamps = np.cumsum(result.seconds)  # the end of every step, from the loop's start
     ends = stamps[setup["warmup"] - 1::setup["steps"]]
     windows = np.diff(ends).tolist()
     slowest = np.max(allgather_json(windows), axis=0).tolist()

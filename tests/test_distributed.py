@@ -288,4 +288,4 @@ def test_distributed_and_devices_refuse_bad_settings(tmp_path, capsys, monkeypat
     assert "devices=3, but only 1 cpu device(s) are available over 1 process(es)" in capsys.readouterr().err
     assert cli_main(["train", "--run-dir", str(tmp_path / "c"), "--variant", "final_proposal", "--preset", "tiny",
                      "--devices", "2"]) == 2
-    assert "devices=2: controller variants train online on one device" in capsys.readouterr().err
+    assert "devices=2: controller variants and ppo train online on one device" in capsys.readouterr().err

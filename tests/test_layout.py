@@ -68,3 +68,29 @@ def test_the_checker_sees_imports():
     assert "cdrl.models.nets" in GRAPH["cdrl.models.base"]
     assert "cdrl.runs.rundir" in GRAPH["cdrl.runs.offline"]
     assert "cdrl.runs.train" in GRAPH["cdrl.cli"]  # a lazy import inside a function
+
+
+def test_one_host_loop_serves_every_kind_of_run():
+    """Every kind of run steps through `cdrl.training.loop.host_loop`: the offline run, the
+    online runs (controllers and PPO), the sweep and `fit`; and only the host loop draws a
+    training progress bar (data collection has its own)."""
+    def calls(module: str, name: str) -> bool:
+        tree = ast.parse(MODULES[module].read_text())
+        return any(isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == name
+                   for n in ast.walk(tree))
+
+    for module in ("cdrl.runs.offline", "cdrl.runs.online", "cdrl.runs.grid", "cdrl.runs.sweep", "cdrl.training.loop"):
+        assert calls(module, "host_loop"), f"{module} does not run through host_loop"
+    bars = sorted(m for m, p in MODULES.items() if "tqdm" in cdrl_imports_any(p))
+    assert bars == ["cdrl.data.collect", "cdrl.training.loop"], bars
+
+
+def cdrl_imports_any(path: Path) -> set[str]:
+    """Top-level names of every module `path` imports."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names.add(node.module.split(".")[0])
+    return names

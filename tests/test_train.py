@@ -140,7 +140,7 @@ def test_nan_in_data_gives_a_clear_error():
     bad = chunk.replace(obs=np.where(np.arange(16) == 3, np.nan, chunk.obs / 255.0).astype(np.float32))
 
     class Once:
-        batch = 2
+        batch, unroll = 2, 5
 
         def next_chunk(self):
             return bad
@@ -226,5 +226,5 @@ def test_main_learns_well_below_copy_last_frame():
     hp = HParams.create(v, lr=1.0, momentum=0.9)
     state, history = fit(v, stream, 240, hp, key=jax.random.PRNGKey(0))
     result = evaluate(v, state.params, test_eps, unroll=16)
-    assert np.mean([h.loss for h in history[-20:]]) < 0.5 * np.mean([h.loss for h in history[:5]])
+    assert np.mean([h["loss"] for h in history[-20:]]) < 0.5 * np.mean([h["loss"] for h in history[:5]])
     assert result["bce"] < 0.85 * result["copy_bce"], result

@@ -38,6 +38,7 @@ from cdrl.data.frames import pixel_bce
 from cdrl.evaluation.metrics import excess_ratio
 from cdrl.models.base import StepInput, Variant
 from cdrl.runs.checkpoint import CheckpointError
+from cdrl.runs.rundir import RunDir
 
 DPI = 100
 LOSS_SIZE = (8.0, 5.0)
@@ -396,7 +397,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None,
             models.append(restore_model(run))
         except CheckpointError as exc:
             raise ValueError(f"{run.path}: {exc}") from None
-    out = Path(out_dir) if out_dir is not None else runs[0].path / "plots"
+    out = Path(out_dir) if out_dir is not None else RunDir(runs[0].path).plots_dir
     out.mkdir(parents=True, exist_ok=True)
 
     written = [save_figure(loss_figure(runs), out / "loss.png"),

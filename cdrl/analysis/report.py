@@ -85,7 +85,7 @@ def restore_model(run: Run) -> Model:
     """The run's latest good checkpoint. FileNotFoundError if it has none;
     `cdrl.runs.checkpoint.CheckpointError` (a RuntimeError) if every one is corrupt."""
     cfg = run.config
-    directory = run.path / "checkpoints"
+    directory = RunDir(run.path).checkpoint_dir
     if not directory.is_dir() or not any(p.name.isdigit() for p in directory.iterdir()):
         raise FileNotFoundError(f"{directory} holds no checkpoint")
     variant = make_variant(cfg.variant, cfg.arch)
@@ -101,7 +101,7 @@ def restore_model(run: Run) -> Model:
 
 def run_episodes(run: Run, n: int) -> tuple[list, list]:
     """The first `n` training and the first `n` held-out episodes of the run's data."""
-    train, test = load_episodes(run.config, run.path.parent / "data-cache")
+    train, test = load_episodes(run.config, RunDir(run.path).data_cache)
     return [train[i] for i in range(min(n, len(train)))], [test[i] for i in range(min(n, len(test)))]
 
 

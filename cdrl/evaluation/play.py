@@ -1,10 +1,16 @@
 """Playing whole episodes with a policy, many games at once, and the return table.
 
 A policy is `init(key) -> state` and `step(key, state, obs) -> (action, state)` for one
-game (the form of `envs.policies`); `play` runs N games in one `vmap` and a `lax.scan` of
-`max_steps`, and counts each game's return and length up to its first episode end.
-`controller_policy` wraps a trained controller variant in the same form, without
-exploration noise: it executes ã_t and feeds it back, as in training.
+game (the form of `envs.policies`; a privileged policy's step also takes the game's state and
+physics); `play` runs N games in one `vmap` and a `lax.scan` of `max_steps`, and counts each
+game's return and length up to its first episode end. `controller_policy` wraps a trained
+controller variant in the same form, without exploration noise: it executes ã_t and feeds it
+back, as in training.
+
+`compare_policies` is the protocol every figure of control uses: the learned policies and the
+reference policies (`REFERENCES`: uniform random, random turning that never accelerates, the
+thesis's behaviour switching, and the privileged scripted policy) on the same held-out games,
+seeds `EVAL_SEED`, `EVAL_SEED` + 1, ..., each at most `max_steps` steps.
 """
 from __future__ import annotations
 
@@ -39,8 +45,12 @@ def controller_policy(variant: Variant, params) -> tuple[Callable, Callable]:
     return init, step
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 5))
-def _play(game, policy_init, policy_step, env_params, keys, max_steps: int):
+EVAL_SEED = 10_000  # the first held-out game; training games never use seeds this high
+REFERENCES = ("uniform", "never_accelerate", "behaviour", "privileged")
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 5, 6))
+def _play(game, policy_init, policy_step, env_params, keys, max_steps: int, privileged: bool = False):
     def one_game(key):
         k_reset, k_policy, k_run = jax.random.split(key, 3)
         obs, env_state = game.reset(k_reset, env_params)
@@ -48,7 +58,10 @@ def _play(game, policy_init, policy_step, env_params, keys, max_steps: int):
         def body(c, _):
             env_state, obs, pstate, key, ret, length, alive = c
             key, k_act, k_env = jax.random.split(key, 3)
-            action, pstate = policy_step(k_act, pstate, obs)
+            if privileged:
+                action, pstate = policy_step(k_act, pstate, obs, env_state, env_params)
+            else:
+                action, pstate = policy_step(k_act, pstate, obs)
             obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, action, env_params)
             ret = ret + jnp.where(alive, reward, 0.0)
             length = length + alive.astype(jnp.int32)
@@ -62,11 +75,36 @@ def _play(game, policy_init, policy_step, env_params, keys, max_steps: int):
     return jax.vmap(one_game)(keys)
 
 
-def play(game, env_params, policy_init, policy_step, seeds: list[int] | np.ndarray, max_steps: int):
-    """Returns and lengths `[N]` of one episode per seed (at most `max_steps` steps each)."""
+def play(game, env_params, policy_init, policy_step, seeds: list[int] | np.ndarray, max_steps: int,
+         privileged: bool = False):
+    """Returns and lengths `[N]` of one episode per seed (at most `max_steps` steps each);
+    `privileged`: the policy's step takes the game's state and physics too."""
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
-    returns, lengths = _play(game, policy_init, policy_step, env_params, keys, int(max_steps))
+    returns, lengths = _play(game, policy_init, policy_step, env_params, keys, int(max_steps), privileged)
     return np.asarray(returns), np.asarray(lengths)
+
+
+def reference_policy(game, name: str):
+    """The reference policy `name` (one of `REFERENCES`) of `game`."""
+    from envs.policies import get_policy, privileged_policy
+
+    if name not in REFERENCES:
+        raise ValueError(f"unknown reference policy {name!r}; choose one of {', '.join(REFERENCES)}")
+    return privileged_policy(game) if name == "privileged" else get_policy(name)
+
+
+def compare_policies(game, env_params, learned: dict[str, tuple[Callable, Callable]], episodes: int,
+                     max_steps: int, seed: int = EVAL_SEED, references: bool = True) -> dict[str, dict]:
+    """The `learned` policies (name -> (init, step), noise-free) and, with `references`, every
+    reference policy, on the same `episodes` held-out games: name -> `summarize` row."""
+    seeds = np.arange(seed, seed + episodes)
+    rows = {name: summarize(*play(game, env_params, init, step, seeds, max_steps))
+            for name, (init, step) in learned.items()}
+    for name in REFERENCES if references else ():
+        policy = reference_policy(game, name)
+        rows[name] = summarize(*play(game, env_params, policy.init, policy.step, seeds, max_steps,
+                                     privileged=policy.privileged))
+    return rows
 
 
 def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:

@@ -28,8 +28,8 @@ from cdrl.models.observation import ClosedLoop, MainAction
 class _Heads:
     """Mixin: split the FC output into observation / action / reward codes and decode them."""
 
-    predicts_reward = False
     has_controller = True
+    controller_groups = ("act_dec",)
 
     def head_sizes(self) -> tuple[int, ...]:
         a = self.arch

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.models import nets
-from cdrl.models.base import Carry, Variant, bce_with_logits, code_prediction_error, reset_where
+from cdrl.models.base import Carry, Variant, bce_with_logits, reset_where
 
 # Steps of the recurrent core per iteration of its scan: XLA's CPU loops cost a fixed
 # overhead per iteration, which matters for the small per-step matmuls of one batch
@@ -116,6 +116,7 @@ class BaselineRecurrent(Main):
 
     name = "baseline_recurrent"
     shared_code_space = True
+    stages = True
 
     def recur(self, params, carry, k, is_first):
         return super().recur(params, carry, jax.lax.stop_gradient(k), is_first)

@@ -17,6 +17,7 @@ import dataclasses
 from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
 from cdrl.models.base import Variant
+from cdrl.training.online import SCOPES
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
 
 # option -> value, per recipe. Options not listed keep their field default.
@@ -39,9 +40,15 @@ ONLINE_OVERRIDES: dict[str, dict[str, object]] = {
     "thesis": {},
     "fast": {"lr": 0.1, "batch": 8, "unroll": 16, "fc_init_gain": 1.0},
 }
+# Policies trained without a world model, and what every recipe sets for them: PPO's usual
+# numbers (Adam lr 2.5e-4, gradient norm clipped at 0.5, 16 games x 32 steps per update).
+AGENTS = {"ppo": "proximal policy optimisation: model-free, from the same frames (cdrl.training.ppo)"}
+AGENT_RECIPE: dict[str, object] = {
+    "optimizer": "adam", "lr": 2.5e-4, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.5,
+    "lr_schedule": "constant", "lr_warmup": 0, "batch": 16, "unroll": 32, "obs_norm": "data", "fc_init_gain": 1.0,
+}
 DEFAULT_RECIPE = "fast"
 OBS_NORMS = ("none", "data")
-LEVELS = ("thesis", "flat", "sparse", "clean")  # envs.slither.LEVELS; checked there too
 
 
 def _opt(default, help: str):
@@ -57,11 +64,12 @@ def _recipe_opt(help: str):
 class RunConfig:
     """Everything that defines a training run (the CLI's `train` options map onto it)."""
 
-    variant: str = _opt("main", "model variant (see `cdrl variants`)")
+    variant: str = _opt("main", "model variant, or ppo (see `cdrl variants`)")
     preset: str = _opt("small", "architecture preset: thesis (150x150, LSTM 512), small (64x64) or tiny")
     recipe: str = _opt(DEFAULT_RECIPE, f"training recipe filling the options it names: {' or '.join(RECIPES)}")
     data: str = _opt("game", "'game' (collect from the built-in game and cache it), 'synthetic', or a data set directory")
-    level: str = _opt("thesis", f"level of the built-in game (data collection and online play): {', '.join(LEVELS)}")
+    level: str = _opt("thesis", "level of the built-in game (data collection and online play): thesis, flat, sparse, "
+                                "clean (envs.slither.LEVELS)")
     episodes: int = _opt(60, "episodes to collect when data is 'game' or 'synthetic'")
     episode_steps: int = _opt(200, "step limit of a collected episode")
     unroll: int = _recipe_opt("truncated-BPTT length T")
@@ -98,12 +106,19 @@ class RunConfig:
     noise_std: float = _opt(0.3, "online variants: std of the exploration noise on the controller's actions")
     noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration noise")
     warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")
+    gamma: float = _opt(0.99, "ppo: discount of future reward")
+    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation")
+    clip_eps: float = _opt(0.2, "ppo: clip range of the probability ratio (and of the value)")
+    value_coef: float = _opt(0.5, "ppo: weight of the value loss")
+    entropy_coef: float = _opt(0.01, "ppo: weight of the entropy bonus")
+    ppo_epochs: int = _opt(4, "ppo: passes over each rollout")
+    ppo_minibatches: int = _opt(4, "ppo: minibatches per pass (batch x unroll must divide by it)")
 
     def __post_init__(self):
         if self.recipe not in RECIPES:
             raise ValueError(f"unknown recipe {self.recipe!r}; choose one of {sorted(RECIPES)}")
-        if self.variant not in VARIANTS:
-            raise ValueError(f"unknown variant {self.variant!r}; choose one of {sorted(VARIANTS)}")
+        if self.variant not in VARIANTS and self.variant not in AGENTS:
+            raise ValueError(f"unknown variant {self.variant!r}; choose one of {sorted(VARIANTS) + sorted(AGENTS)}")
         for name, value in self.recipe_values().items():
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
@@ -111,11 +126,15 @@ class RunConfig:
             object.__setattr__(self, "lr_decay_steps", self.steps)
         preset(self.preset)
         for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
-                     "action_dim"):
+                     "action_dim", "ppo_epochs", "ppo_minibatches"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        choices = {"scope": ("controller", "all"), "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
-                   "obs_norm": OBS_NORMS, "level": LEVELS}
+        # The game's package is imported here, not with this module: `cdrl train --distributed`
+        # must start jax.distributed before anything touches a JAX backend.
+        from envs.slither import LEVELS
+
+        choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
+                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS)}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
@@ -132,8 +151,18 @@ class RunConfig:
 
     def recipe_values(self) -> dict[str, object]:
         """The options the run's recipe sets for its variant."""
+        if self.variant in AGENTS:
+            return AGENT_RECIPE
         online = ONLINE_OVERRIDES[self.recipe] if VARIANTS[self.variant].has_controller else {}
         return {**RECIPES[self.recipe], **online}
+
+    @property
+    def kind(self) -> str:
+        """How the run trains: "offline" on recorded episodes, "online" (a controller variant
+        against the game) or "ppo"."""
+        if self.variant in AGENTS:
+            return self.variant
+        return "online" if VARIANTS[self.variant].has_controller else "offline"
 
     @property
     def arch(self) -> ArchConfig:

@@ -1,5 +1,6 @@
-"""A grid of configurations trained as one program: the grid, the stacked train step, the host
-loop (`cdrl.runs.sweep` adds the run directories, `cdrl.runs.sweepstate` the checkpoints).
+"""A grid of configurations trained as one program: the grid, the stacked train step, and its
+job for the host loop (`cdrl.runs.sweep` adds the run directories, `cdrl.runs.sweepstate` the
+checkpoints).
 
 The train step is `vmap`-ed over a leading config axis of the state, the traced `HParams` and
 the data (each seed has its own parameter init and data order, exactly as `cdrl train --seed`
@@ -17,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-import time
 from typing import Callable, Sequence
 
 import jax
@@ -27,7 +27,8 @@ import numpy as np
 from cdrl.data.stream import Chunk, ChunkStream
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
-from cdrl.training.loop import enter_stage, stage_schedule
+from cdrl.training.loop import Job, LoopResult, Plan, Sink, enter_stage, host_loop, stage_schedule
+from cdrl.training.monitor import group_names
 from cdrl.training.optim import HParams, init_opt_state
 from cdrl.training.parallel import ConfigAxis, shard_configs
 from cdrl.training.step import TrainState, init_params, train_step_fn
@@ -135,43 +136,67 @@ def make_streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], 
     return streams
 
 
-StepCallback = Callable[[int, dict, float, TrainState], None]
+class SweepJob(Job):
+    """The host loop's job of a grid: every configuration of this process's block a lane of
+    one vmapped step (`sweep_step`, or its sharded form over `axis`), each with its seed's
+    data stream. A configuration that diverges stops while the others go on. Hooks for a
+    sweep's run directories (`cdrl.runs.sweep`) are `evaluate_lanes` and `save_lanes`."""
+
+    stop_on_divergence = False
+
+    def __init__(self, variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, ChunkStream], steps: int,
+                 axis: ConfigAxis | None = None):
+        self.variant, self.cfgs, self.streams = variant, cfgs, streams
+        self.axis = axis or ConfigAxis(None, len(cfgs))
+        self.held = held_configs(cfgs, self.axis)
+        self.real = [i < len(cfgs) for i in self.axis.local]
+        self.lanes = len(self.held)
+        self.desc = f"sweep {variant.name} x{len(cfgs)}"
+        self.frames_per_step = cfgs[0].batch * cfgs[0].unroll
+        self.ratio_names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
+        self.threshold = float(cfgs[0].diverge_threshold)
+        self.schedule = stage_schedule(variant, steps)
+        self.switches = {first for first, _ in self.schedule}
+        self.step_fn = (functools.partial(sweep_step, variant) if self.axis.mesh is None
+                        else sharded_sweep_step(variant, self.axis.mesh))
+
+    def init(self, resumed: tuple[TrainState, np.ndarray] | None = None) -> tuple[TrainState, list[bool]]:
+        """This block's stacked initial states (or `resumed`'s) and which lanes train."""
+        states, self.hps = init_sweep(self.variant, self.held)
+        alive = np.asarray(self.real)
+        if resumed is not None:
+            states, alive = resumed[0], np.asarray(resumed[1], bool) & alive
+        self.alive = self.axis.to_global(jnp.asarray(alive))
+        return states, alive.tolist()
+
+    def stage(self, step, states, resumed):
+        if resumed:  # the stage the run (re)starts in; the block goes onto the devices
+            states, self.hps = enter_stage(self.variant, self.schedule, step, states, self.hps, resumed=step > 0)
+            self.placed_hps = self.axis.to_global(self.hps)
+            return self.axis.to_global(states)
+        if step in self.switches:  # a new stage: its loss weights, fresh momentum
+            local, self.hps = enter_stage(self.variant, self.schedule, step, self.axis.to_local(states), self.hps)
+            self.placed_hps = self.axis.to_global(self.hps)
+            return self.axis.to_global(local)
+        return states
+
+    def step(self, states):
+        chunk_of = {seed: stream.next_chunk() for seed, stream in self.streams.items()}
+        chunks = self.axis.to_global(jax.tree.map(lambda *xs: np.stack(xs), *[chunk_of[c.seed] for c in self.held]))
+        states, self.alive, metrics = self.step_fn(states, self.placed_hps, self.alive, chunks)
+        return states, self.axis.to_local(metrics)
+
+    def local_states(self, states) -> TrainState:
+        """This block's stacked states out of the global ones."""
+        return self.axis.to_local(states)
 
 
 def run_grid(variant: Variant, cfgs: Sequence[RunConfig], streams: dict[int, ChunkStream], steps: int,
-             callback: StepCallback | None = None, start: int = 0,
-             resumed: tuple[TrainState, np.ndarray] | None = None, axis: ConfigAxis | None = None):
-    """The host loop of a sweep: `steps` train steps of every configuration. `axis` lays the
-    configurations out over devices (default: one device); this process holds the block
-    `axis.local` and `streams` maps each seed of that block to its data stream.
-    `callback(step, metrics, seconds, states)` sees every step's metrics (numpy, this block's
-    config axis first, `alive_before` added) and the stacked global states after it.
-    `resumed` (this block's stacked states and alive mask) continues a sweep from step `start`.
-    Returns (this block's final stacked states, its alive mask)."""
-    axis = axis or ConfigAxis(None, len(cfgs))
-    held = held_configs(cfgs, axis)
-    real = np.array([i < len(cfgs) for i in axis.local])
-    states, hps = init_sweep(variant, held)
-    alive = real
-    if resumed is not None:
-        states, alive = resumed[0], np.asarray(resumed[1], bool) & real
-    schedule = stage_schedule(variant, steps)
-    states, hps = enter_stage(variant, schedule, start, states, hps, resumed=start > 0)
-    step_fn = functools.partial(sweep_step, variant) if axis.mesh is None else sharded_sweep_step(variant, axis.mesh)
-    states, placed_hps, placed_alive = axis.to_global(states), axis.to_global(hps), axis.to_global(jnp.asarray(alive))
-    switches = {first for first, _ in schedule}
-    for step in range(start, steps):
-        if step > start and step in switches:  # a new stage: its loss weights, fresh momentum
-            local, hps = enter_stage(variant, schedule, step, axis.to_local(states), hps)
-            states, placed_hps = axis.to_global(local), axis.to_global(hps)
-        chunk_of = {seed: stream.next_chunk() for seed, stream in streams.items()}
-        chunks = axis.to_global(jax.tree.map(lambda *xs: np.stack(xs), *[chunk_of[c.seed] for c in held]))
-        t0 = time.perf_counter()
-        states, placed_alive, metrics = step_fn(states, placed_hps, placed_alive, chunks)
-        metrics = jax.device_get(axis.to_local(metrics))
-        seconds = time.perf_counter() - t0
-        metrics["alive_before"] = alive
-        alive = alive & ~np.asarray(metrics["diverged"])
-        if callback is not None:
-            callback(step, metrics, seconds, states)
-    return axis.to_local(states), alive
+             axis: ConfigAxis | None = None) -> LoopResult:
+    """`steps` train steps of every configuration of `cfgs` through the host loop, recording
+    nothing: this process's block (`axis.local`), each seed's data from `streams`. The
+    result's state is the block's stacked final states."""
+    job = SweepJob(variant, cfgs, streams, steps, axis)
+    states, alive = job.init()
+    result = host_loop(job, states, Plan(steps=steps, final_eval=False), [Sink() for _ in range(job.lanes)], alive)
+    return dataclasses.replace(result, state=job.local_states(result.state))

@@ -1,9 +1,10 @@
 """An offline training run: a variant trained on recorded episodes with truncated BPTT.
 
-`offline_train_run(cfg, variant, run_dir, resume)` is what `cdrl train` runs for the
-observation variants: the host loop over the jitted train step with metrics, periodic
-held-out evaluation and checkpoints. A resumed run continues exactly where its last good
-checkpoint left off: same state, same data cursor, so the same per-step losses.
+`offline_train_run(cfg, run_dir, resume)` is what `cdrl train` runs for the observation
+variants: the host loop (`cdrl.training.loop.host_loop`) over the jitted train step
+(`OfflineJob`), with periodic held-out evaluation and checkpoints. A resumed run continues
+exactly where its last good checkpoint left off: same state, same data cursor, so the same
+per-step losses.
 
 With `devices` other than 1 the run is data parallel (`cdrl.training.parallel.DataParallel`):
 the B streams are split over the devices, which may belong to several processes (`cdrl train
@@ -15,142 +16,108 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import sys
-import time
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
 from cdrl.data.stream import ChunkStream
 from cdrl.evaluation.metrics import evaluate
 from cdrl.models import make_variant
+from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import is_primary, primary_first
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
-from cdrl.runs.tboard import TBLog
-from cdrl.training.loop import divergence_message, enter_stage, stage_schedule
+from cdrl.runs.tboard import prediction_image
+from cdrl.runs.writer import run_writer
+from cdrl.training.loop import Plan, TrainJob, host_loop
 from cdrl.training.parallel import DataParallel, local_copy
-from cdrl.training.step import init_state, ratio_names, train_step
+from cdrl.training.step import init_state, ratio_names
 
 
-def step_record(step: int, metrics: dict, names: list[str], fps: float) -> dict:
-    """The `metrics.jsonl` record of one step from its (host) metrics."""
-    return {
-        "step": step,
-        "loss": float(metrics["loss"]),
-        "terms": {k: float(v) for k, v in metrics["terms"].items()},
-        "max_ratio": float(metrics["max_ratio"]),
-        "worst_group": names[int(metrics["worst_group"])],
-        "ratios": dict(zip(names, np.asarray(metrics["ratios"]).tolist())),
-        "fps": fps,
-    }
+class OfflineJob(TrainJob):
+    """`TrainJob` with the run's held-out evaluation, its checkpoints (state, data cursor,
+    key) and, on several devices, the data-parallel layout."""
+
+    def __init__(self, cfg: RunConfig, variant, stream: ChunkStream, test_eps, state, ckpts: Checkpoints,
+                 parallel: DataParallel | None, writes: bool):
+        super().__init__(variant, stream, cfg.hparams(variant), cfg.steps, ratio_names(state))
+        self.cfg, self.test_eps, self.ckpts, self.parallel, self.writes = cfg, test_eps, ckpts, parallel, writes
+        self.key = jax.random.PRNGKey(cfg.seed)
+        self.threshold = cfg.diverge_threshold
+        self._placed = {}  # the hyper-parameters on the devices, placed again when a stage changes them
+        if parallel is not None:
+            self.run_step = parallel.step(variant, state)
+
+    def host_params(self, params):
+        """Parameters for host-side work (evaluation): one device's copy of replicated ones."""
+        return params if self.parallel is None else local_copy(params)
+
+    def stage(self, step: int, state, resumed: bool):
+        staged = super().stage(step, state, resumed)
+        if self.parallel is not None and staged is not state:
+            staged = staged.replace(opt_state=self.parallel.place(staged.opt_state))
+        return staged
+
+    def inputs(self, chunk):
+        if self.parallel is None:
+            return self.hp, chunk
+        if self._placed.get("of") is not self.hp:
+            self._placed = {"of": self.hp, "hp": self.parallel.place(self.hp)}
+        return self._placed["hp"], self.parallel.place_chunk(chunk)
+
+    def held_out(self) -> list:
+        return [self.test_eps[i] for i in range(min(self.cfg.eval_episodes, len(self.test_eps)))]
+
+    def evaluate(self, step, state, lanes):
+        if not self.writes or not lanes:
+            return {}
+        params = self.host_params(state.params)
+        episodes = self.held_out()
+        record = {"step": step, "split": "test", **evaluate(self.variant, params, episodes, self.cfg.unroll)}
+        return {0: (record, prediction_image(self.variant, params, episodes[0]))}
+
+    def meta(self, step: int) -> dict:
+        return {"step": step, "config": dataclasses.asdict(self.cfg), "stream": self.stream.state_dict(),
+                "key": np.asarray(self.key).tolist()}
+
+    def save(self, step, state, saves, alive, diverged):
+        self.ckpts.save(step, state, self.meta(step))
+        return str(self.ckpts.directory / str(step))
 
 
 def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
-    cache = run.path.parent / "data-cache"
     parallel = DataParallel.create(cfg.devices, cfg.batch)
     writes = is_primary()
 
     def prepare():
-        train_eps, test_eps = load_episodes(cfg, cache)
+        train_eps, test_eps = load_episodes(cfg, run.data_cache)
         verify_data(cfg, train_eps, test_eps)
-        return train_eps, test_eps, cfg if resume else with_obs_norm(with_data_dims(cfg, train_eps), cache)
+        return train_eps, test_eps, cfg if resume else with_obs_norm(with_data_dims(cfg, train_eps), run.data_cache)
 
     train_eps, test_eps, cfg = primary_first(prepare, "loading the run's data")  # a game's data is collected once
     variant = make_variant(cfg.variant, cfg.arch)
     stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size,
                          action_dim=cfg.arch.action_dim, seed=cfg.seed)
-    hp = cfg.hparams(variant)
-    key = jax.random.PRNGKey(cfg.seed)
-    state = init_state(variant, key, cfg.batch, hp)
+    state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, cfg.hparams(variant))
     if parallel is not None:
         state = parallel.place_state(state)
     opened = run.open(cfg, state, resume, write=writes)
-    state, start, ckpts = opened.state, opened.start, opened.checkpoints
     if opened.meta is not None:
         stream.load_state_dict(opened.meta["stream"])
-
-    names = ratio_names(state)
-    schedule = stage_schedule(variant, cfg.steps)
-
-    def stage(step: int, state, hp, resumed: bool = False):
-        """`enter_stage`, with a fresh optimiser state placed on the devices like the old one."""
-        staged, hp = enter_stage(variant, schedule, step, state, hp, resumed=resumed)
-        if parallel is not None and staged is not state:
-            staged = staged.replace(opt_state=parallel.place(staged.opt_state))
-        return staged, hp
-
-    state, hp = stage(start, state, hp, resumed=True)
-
-    def meta(step):
-        return {"step": step, "config": dataclasses.asdict(cfg), "stream": stream.state_dict(),
-                "key": np.asarray(key).tolist()}
-
-    if parallel is None:
-        step_fn, host = functools.partial(train_step, variant), (lambda params: params)
-    else:
-        step_fn, host = parallel.step(variant, state), local_copy  # host: parameters for host-side work
-    placed = {}  # the hyper-parameters on the devices, placed again when a stage changes them
-
-    def inputs(hp, chunk):
-        if parallel is None:
-            return hp, chunk
-        if placed.get("of") is not hp:
-            placed.update({"of": hp, "hp": parallel.place(hp)})
-        return placed["hp"], parallel.place_chunk(chunk)
-
-    tb = TBLog(run.tb_dir, start, cfg.tensorboard and writes)
-    if tb.replay_evals(run.evals.read(), start) and len(test_eps):
-        tb.predictions(start, variant, host(state.params), test_eps[0])
-
-    def run_eval(step, params):
-        if not writes:
-            return None
-        params = host(params)
-        episodes = [test_eps[i] for i in range(min(cfg.eval_episodes, len(test_eps)))]
-        result = {"step": step, "split": "test", **evaluate(variant, params, episodes, cfg.unroll)}
-        run.evals.append([result])
-        tb.eval(result)
-        tb.predictions(step, variant, params, episodes[0])
-        tb.flush()
-        return result
-
+    job = OfflineJob(cfg, variant, stream, test_eps, opened.state, opened.checkpoints, parallel, writes)
+    sink = run_writer(run, opened.start, cfg.tensorboard, writes)
+    if writes and sink.replayed and len(test_eps):  # the purged image of the step it resumes at
+        sink.image(opened.start, prediction_image(variant, job.host_params(opened.state.params), test_eps[0]))
+    plan = Plan(steps=cfg.steps, start=opened.start, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every)
     show = (sys.stderr.isatty() if progress is None else progress) and writes
-    bar = tqdm(total=cfg.steps, initial=start, disable=not show, desc=f"train {cfg.variant}", unit="step")
-    log = run.metrics.append if writes else (lambda records: None)
-    frames_per_step = cfg.batch * cfg.unroll
-    pending, last_eval, t_last = [], None, time.perf_counter()
-    with contextlib.closing(tb):
-        for step in range(start, cfg.steps):
-            if step > start:
-                state, hp = stage(step, state, hp)
-            state, metrics = step_fn(state, *inputs(hp, stream.next_chunk()))
-            metrics = jax.device_get(metrics)
-            now = time.perf_counter()
-            fps, t_last = frames_per_step / max(now - t_last, 1e-9), now
-            if metrics["diverged"]:
-                message, group, ratio = divergence_message(step, metrics, names, cfg.diverge_threshold)
-                log(pending)
-                ckpts.save(step, state, meta(step))
-                bar.close()
-                raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
-            pending.append(step_record(step, metrics, names, fps))
-            tb.step(pending[-1])
-            bar.update(1)
-            bar.set_postfix(loss=f"{pending[-1]['loss']:.4f}", fps=f"{fps:.0f}")
-            done = step + 1
-            if cfg.eval_every and done % cfg.eval_every == 0 and done < cfg.steps:
-                last_eval = run_eval(done, state.params)
-            if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-                log(pending)
-                pending = []
-                ckpts.save(done, state, meta(done))
-                tb.flush()
-        log(pending)
-        bar.close()
-        if start < cfg.steps or last_eval is None:
-            last_eval = run_eval(cfg.steps, state.params)
-    return {"run_dir": str(run.path), "steps": cfg.steps, "final_eval": last_eval}
+    with contextlib.closing(sink):
+        result = host_loop(job, opened.state, plan, [sink], progress=show)
+        final = result.last_eval.get(0)
+        if final is None and writes:  # a finished run resumed: its final evaluation, made now if it is missing
+            final = next((r for r in reversed(run.evals.read()) if r["step"] == cfg.steps), None)
+            if final is None:
+                final, image = job.evaluate(cfg.steps, result.state, [0])[0]
+                sink.evaluation(final, image)
+    return {"run_dir": str(run.path), "steps": cfg.steps, "final_eval": final}

@@ -1,34 +1,112 @@
-"""A training run of a controller variant against the built-in game (`cdrl train` runs it
-for action_loop, reward_prediction and final_proposal).
+"""Runs whose jitted program plays the built-in game: the controller variants (action_loop,
+reward_prediction, final_proposal) trained online, PPO (`cdrl train --variant ppo`), and
+`GameJob`, the host loop's job for every such program.
 
-The run directory has the layout of offline runs; `metrics.jsonl` lines add the real and
-predicted reward, the finished episodes' returns, the exploration noise, and the excess ratio
-of the chunk's next-frame predictions against copying the last frame (on the frames the
-model is about to learn from, so before the update). Checkpoints hold
-the whole `OnlineState` (games included), so a resumed run continues exactly.
+The run directory has the layout of offline runs; `metrics.jsonl` lines add the real reward
+per game step, the finished episodes' mean return, the mean executed action and what the
+program reports besides (the exploration noise, whether the ascent is on, and for world
+models the excess ratio of the chunk's next-frame predictions against copying the last frame,
+on the frames the model is about to learn from, so before the update). Each evaluation plays
+the learned policy without noise against the reference policies on the same held-out games
+(`cdrl.evaluation.play.compare_policies`). Checkpoints hold the whole program state (games
+included), so a resumed run continues exactly.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import sys
-import time
 from pathlib import Path
+from typing import Callable
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
 from cdrl.evaluation.metrics import excess_ratio
-from cdrl.evaluation.play import controller_policy, format_table, play, summarize
+from cdrl.evaluation.play import EVAL_SEED, compare_policies, controller_policy, format_table
 from cdrl.models import make_variant
-from cdrl.models.base import Variant
+from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import run_game, with_obs_norm
-from cdrl.runs.tboard import TBLog
-from cdrl.training.loop import divergence_message
+from cdrl.runs.writer import run_writer
+from cdrl.training.loop import Job, Plan, host_loop
 from cdrl.training.monitor import group_names
 from cdrl.training.online import OnlineConfig, OnlineHParams, init_online, online_step
+from cdrl.training.ppo import PPOConfig, PPOHParams, init_ppo, ppo_policy, ppo_step
+
+
+class GameJob(Job):
+    """A program that plays the game as it learns: `program(state) -> (state, metrics)` with
+    the game statistics every such program reports (`reward`, `episodes`, `return_sum`,
+    `length_sum`, `action_mean`); `policy(state)` is the learned policy, noise-free, in the
+    form of `cdrl.evaluation.play`, and `name` its row in the evaluation table. Metrics named
+    in `extras` are logged as they are."""
+
+    def __init__(self, cfg: RunConfig, program: Callable, ckpts: Checkpoints, names: list[str], name: str,
+                 policy: Callable, game, env_params, extras: tuple[str, ...] = ()):
+        self.cfg, self.program, self.ckpts, self.name, self.policy = cfg, program, ckpts, name, policy
+        self.game, self.env_params, self.extras = game, env_params, extras
+        self.desc = f"{name} {cfg.variant}"
+        self.frames_per_step = cfg.batch * cfg.unroll
+        self.ratio_names = names
+        self.threshold = cfg.diverge_threshold
+        self.reference_rows: dict | None = None  # the reference policies' rows: the same games every time
+
+    def step(self, state):
+        return self.program(state)
+
+    def record(self, m: dict) -> dict:
+        episodes = int(m["episodes"])
+        fields = {"reward": float(m["reward"]), "episodes": episodes,
+                  "mean_return": float(m["return_sum"]) / episodes if episodes else None,
+                  "mean_length": float(m["length_sum"]) / episodes if episodes else None,
+                  "action_mean": np.asarray(m["action_mean"]).tolist()}
+        terms = m["terms"]
+        if "obs_bce" in terms:
+            fields["excess_ratio"] = excess_ratio(float(terms["obs_bce"]), float(terms["copy_bce"]),
+                                                  float(terms["target_entropy"]))
+        for name in self.extras:
+            value = np.asarray(m[name])
+            fields[name] = value.item() if value.ndim == 0 else value.tolist()
+        return fields
+
+    def play(self, state, episodes: int | None = None, seed: int = EVAL_SEED) -> dict[str, dict]:
+        """The learned policy's row and the reference policies' on the same held-out games."""
+        episodes = episodes or self.cfg.eval_episodes
+        rows = compare_policies(self.game, self.env_params, {self.name: self.policy(state)}, episodes,
+                                self.cfg.episode_steps, seed, references=self.reference_rows is None)
+        if self.reference_rows is None:
+            self.reference_rows = {k: v for k, v in rows.items() if k != self.name}
+        return {self.name: rows[self.name], **self.reference_rows}
+
+    def evaluate(self, step, state, lanes):
+        return {0: ({"step": step, "split": "play", "policies": self.play(state)}, None)} if lanes else {}
+
+    def save(self, step, state, saves, alive, diverged):
+        self.ckpts.save(step, state, {"step": step, "config": dataclasses.asdict(self.cfg)})
+        return str(self.ckpts.directory / str(step))
+
+    def postfix(self, records):
+        return {"loss": f"{records[0]['loss']:.4f}", "reward": f"{records[0]['reward']:.3f}"}
+
+
+def game_run(cfg: RunConfig, run: RunDir, resume: bool, init_state, job_of: Callable, progress: bool | None) -> dict:
+    """The host loop of a `GameJob` in `run`: `init_state` is the fresh program state (restored
+    when resuming), `job_of(checkpoints, state)` the job. Ends with the policy table on stderr."""
+    opened = run.open(cfg, init_state, resume)
+    job: GameJob = job_of(opened.checkpoints, opened.state)
+    plan = Plan(steps=cfg.steps, start=opened.start, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every)
+    sink = run_writer(run, opened.start, cfg.tensorboard)
+    with contextlib.closing(sink):
+        result = host_loop(job, opened.state, plan, [sink], progress=sys.stderr.isatty() if progress is None else progress)
+        if 0 in result.last_eval:
+            rows = result.last_eval[0]["policies"]
+        else:  # a finished run resumed: play it again
+            rows = job.play(result.state)
+    print(format_table(rows), file=sys.stderr)
+    return {"run_dir": str(run.path), "steps": cfg.steps, "policies": rows}
 
 
 def hparams(cfg: RunConfig) -> OnlineHParams:
@@ -37,98 +115,83 @@ def hparams(cfg: RunConfig) -> OnlineHParams:
                                 diverge_threshold=cfg.diverge_threshold, scope=cfg.scope)
 
 
-def compare_policies(variant: Variant, params, game, env_params, episodes: int, max_steps: int,
-                     seed: int = 10_000) -> dict[str, dict]:
-    """The controller (no noise) against the thesis's two data policies, on the same seeds."""
-    from envs.policies import get_policy
+def online_setup(cfg: RunConfig):
+    """(variant, game, its parameters, static config, traced hyper-parameters) of an online run."""
+    variant = make_variant(cfg.variant, cfg.arch)
+    game, env_params = run_game(cfg)
+    return variant, game, env_params, OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll), hparams(cfg)
 
-    seeds = np.arange(seed, seed + episodes)
-    rows = {"controller": summarize(*play(game, env_params, *controller_policy(variant, params), seeds, max_steps))}
-    for name in ("uniform", "behaviour"):
-        policy = get_policy(name)
-        rows[name] = summarize(*play(game, env_params, policy.init, policy.step, seeds, max_steps))
-    return rows
+
+def online_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJob:
+    """The `GameJob` of an online run with the `online_setup(cfg)` it was built from."""
+    variant, game, env_params, ocfg, hp = setup
+    program = functools.partial(_online_program, variant, game, ocfg, hp, env_params)
+    return GameJob(cfg, program, ckpts, group_names(state.train.params), "controller",
+                   lambda s: controller_policy(variant, s.train.params), game, env_params,
+                   extras=("noise_std", "ascent_on"))
+
+
+def _online_program(variant, game, ocfg, hp, env_params, state):
+    return online_step(variant, game, ocfg, state, hp, env_params)
 
 
 def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
     if not resume:
-        cfg = with_obs_norm(cfg, run.path.parent / "data-cache")
-    variant = make_variant(cfg.variant, cfg.arch)
+        cfg = with_obs_norm(cfg, run.data_cache)
+    setup = online_setup(cfg)
+    variant, game, env_params, ocfg, hp = setup
+    state = init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)
+    return game_run(cfg, run, resume, state, lambda ckpts, s: online_job(cfg, setup, ckpts, s), progress)
+
+
+def ppo_setup(cfg: RunConfig):
+    """(architecture, game, its parameters, static config, traced hyper-parameters) of a PPO run."""
     game, env_params = run_game(cfg)
-    ocfg = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll)
-    hp = hparams(cfg)
-    opened = run.open(cfg, init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp), resume)
-    state, start, ckpts = opened.state, opened.start, opened.checkpoints
-    names = group_names(state.train.params)
-    tb = TBLog(run.tb_dir, start, cfg.tensorboard)
-    tb.replay_evals(run.evals.read(), start)
-
-    def evaluate_policies(step):
-        rows = compare_policies(variant, state.train.params, game, env_params, cfg.eval_episodes, cfg.episode_steps)
-        record = {"step": step, "split": "play", "policies": rows}
-        run.evals.append([record])
-        tb.eval(record)
-        return rows
-
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=cfg.steps, initial=start, disable=not show, desc=f"online {cfg.variant}", unit="step")
-    pending, rows, t_last = [], None, time.perf_counter()
-    for step in range(start, cfg.steps):
-        state, m = online_step(variant, game, ocfg, state, hp, env_params)
-        m = jax.device_get(m)
-        now = time.perf_counter()
-        fps, t_last = cfg.batch * cfg.unroll / max(now - t_last, 1e-9), now
-        if m["diverged"]:
-            message, _, _ = divergence_message(step, m, names, cfg.diverge_threshold)
-            run.metrics.append(pending)
-            ckpts.save(step, state, {"step": step, "config": dataclasses.asdict(cfg)})
-            bar.close()
-            raise RuntimeError(message + f" Last good state saved in {ckpts.directory / str(step)}.")
-        episodes = int(m["episodes"])
-        terms = {k: float(v) for k, v in m["terms"].items()}
-        pending.append({
-            "step": step, "loss": float(m["loss"]), "terms": terms,
-            "excess_ratio": excess_ratio(terms["obs_bce"], terms["copy_bce"], terms["target_entropy"]),
-            "reward": float(m["reward"]), "episodes": episodes,
-            "mean_return": float(m["return_sum"]) / episodes if episodes else None,
-            "action_mean": np.asarray(m["action_mean"]).tolist(), "noise_std": float(m["noise_std"]),
-            "ascent_on": bool(m["ascent_on"]), "max_ratio": float(m["max_ratio"]),
-            "worst_group": names[int(m["worst_group"])],
-            "ratios": dict(zip(names, np.asarray(m["ratios"]).tolist())), "fps": fps,
-        })
-        tb.step(pending[-1])
-        bar.update(1)
-        bar.set_postfix(loss=f"{pending[-1]['loss']:.4f}", reward=f"{pending[-1]['reward']:.3f}")
-        done = step + 1
-        if cfg.eval_every and done % cfg.eval_every == 0 and done < cfg.steps:
-            rows = evaluate_policies(done)
-        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-            run.metrics.append(pending)
-            pending = []
-            ckpts.save(done, state, {"step": done, "config": dataclasses.asdict(cfg)})
-            tb.flush()
-    run.metrics.append(pending)
-    bar.close()
-    if start < cfg.steps or rows is None:
-        rows = evaluate_policies(cfg.steps)
-    tb.close()
-    print(format_table(rows), file=sys.stderr)
-    return {"run_dir": str(run.path), "steps": cfg.steps, "policies": rows}
+    pcfg = PPOConfig(num_envs=cfg.batch, unroll=cfg.unroll, epochs=cfg.ppo_epochs, minibatches=cfg.ppo_minibatches)
+    hp = PPOHParams.create(opt=cfg.opt_hparams(), gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_eps=cfg.clip_eps,
+                           value_coef=cfg.value_coef, entropy_coef=cfg.entropy_coef,
+                           diverge_threshold=cfg.diverge_threshold)
+    return cfg.arch, game, env_params, pcfg, hp
 
 
-def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = 10_000) -> dict[str, dict]:
-    """`cdrl eval --policy RUN_DIR`: the run's controller (latest good checkpoint, no noise)
-    against the uniform-random and behaviour-switching policies on the same held-out seeds."""
+def ppo_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJob:
+    arch, game, env_params, pcfg, hp = setup
+    program = functools.partial(_ppo_program, arch, game, pcfg, hp, env_params)
+    return GameJob(cfg, program, ckpts, group_names(state.params), "ppo", lambda s: ppo_policy(arch, s.params),
+                   game, env_params)
+
+
+def _ppo_program(arch, game, pcfg, hp, env_params, state):
+    return ppo_step(arch, game, pcfg, state, hp, env_params)
+
+
+def ppo_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
+    if not resume:
+        cfg = with_obs_norm(cfg, run.data_cache)
+    setup = ppo_setup(cfg)
+    arch, game, env_params, pcfg, hp = setup
+    state = init_ppo(arch, game, env_params, pcfg, jax.random.PRNGKey(cfg.seed), hp)
+    return game_run(cfg, run, resume, state, lambda ckpts, s: ppo_job(cfg, setup, ckpts, s), progress)
+
+
+def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL_SEED) -> dict[str, dict]:
+    """`cdrl eval --policy RUN_DIR`: the run's learned policy (latest good checkpoint, no noise:
+    a controller, or PPO's greedy policy) against the reference policies on the same held-out
+    games."""
     run = RunDir(run_dir)
     cfg = run.read_config()
-    variant = make_variant(cfg.variant, cfg.arch)
-    if not variant.has_controller:
+    if cfg.kind == "offline":
         raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
-    game, env_params = run_game(cfg)
-    like = jax.eval_shape(lambda: init_online(variant, game, env_params, OnlineConfig(cfg.batch, cfg.unroll),
-                                              jax.random.PRNGKey(cfg.seed), hparams(cfg)))
-    state, _, warnings = run.read_checkpoints().restore_latest_good(like)
+    if cfg.kind == "ppo":
+        setup = ppo_setup(cfg)
+        arch, game, env_params, pcfg, hp = setup
+        fresh, job_of = (lambda: init_ppo(arch, game, env_params, pcfg, jax.random.PRNGKey(cfg.seed), hp)), ppo_job
+    else:
+        setup = online_setup(cfg)
+        variant, game, env_params, ocfg, hp = setup
+        fresh = lambda: init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)  # noqa: E731
+        job_of = online_job
+    state, _, warnings = run.read_checkpoints().restore_latest_good(jax.eval_shape(fresh))
     for w in warnings:
         print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
-    return compare_policies(variant, state.train.params, game, env_params, episodes or cfg.eval_episodes,
-                            cfg.episode_steps, seed)
+    return job_of(cfg, setup, run.read_checkpoints(), state).play(state, episodes, seed)

@@ -8,6 +8,9 @@
     tb/               TensorBoard event files (`cdrl.runs.tboard`)
     .lock             the writer's lock (`cdrl.data.lock`): its pid while it runs
 
+Runs that collect the built-in game's data cache it beside them, in `../data-cache/`
+(`RunDir.data_cache`), so runs in one directory share it.
+
 Offline runs, online runs and every configuration of a sweep use `RunDir`; readers
 (`cdrl eval`, `cdrl plot`, `cdrl.analysis.report`) read through it too. A writer holds
 `RunDir.lock()` for as long as it writes; readers never take it and read only complete
@@ -17,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -102,6 +104,7 @@ class RunDir:
         self.checkpoint_dir = self.path / "checkpoints"
         self.plots_dir = self.path / "plots"
         self.tb_dir = self.path / "tb"
+        self.data_cache = self.path.parent / "data-cache"
 
     def __repr__(self) -> str:
         return f"RunDir({str(self.path)!r})"

@@ -35,24 +35,22 @@ from typing import Sequence
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
 from cdrl.evaluation.metrics import evaluate, prefixed
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import all_or_none, allgather_json, is_primary, primary_first
-from cdrl.runs.grid import (GRID_FIELDS, Grid, StepCallback, held_configs, init_sweep,  # noqa: F401 - public names
+from cdrl.runs.grid import (GRID_FIELDS, Grid, SweepJob, held_configs, init_sweep,  # noqa: F401 - public names
                             make_streams, run_grid, stack, sweep_step, sweep_step_fn, take)
-from cdrl.runs.offline import step_record
 from cdrl.runs.rundir import RunDir, atomic_write_text
 from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, gather_progress, read_progress, read_sweep,
                                   restore_configs, save_configs, write_progress, write_sweep)
-from cdrl.runs.tboard import TBLog
-from cdrl.training.monitor import group_names
+from cdrl.runs.tboard import prediction_image
+from cdrl.runs.writer import RunWriter
+from cdrl.training.loop import NullSink, Plan, Sink, host_loop
 from cdrl.training.parallel import ConfigAxis
-from cdrl.training.step import TrainState
 
 
 def _check_grid(variant: Variant) -> None:
@@ -108,12 +106,56 @@ def _locked(run_dir: Path, grid: Grid, base: RunConfig) -> contextlib.ExitStack:
     return all_or_none(acquire, "locking the sweep's directories")
 
 
+class SweepRunJob(SweepJob):
+    """A sweep's job with its run directories: every configuration's held-out evaluations and
+    checkpoints in its own directory, and the sweep's `progress.json` after every checkpoint."""
+
+    def __init__(self, variant, cfgs, run_cfgs, streams, steps, axis, runs, ckpts, episodes, diverged: dict):
+        super().__init__(variant, cfgs, streams, steps, axis)
+        self.run_cfgs, self.runs, self.ckpts, self.episodes = run_cfgs, runs, ckpts, episodes
+        self.earlier = diverged  # how the configurations that had diverged before a resume did
+
+    def config(self, k: int) -> int:
+        """The configuration of lane `k`."""
+        return self.axis.local[k]
+
+    def held_out(self, i: int) -> list:
+        test_eps = self.episodes[self.cfgs[i].seed][1]
+        return [test_eps[j] for j in range(min(self.cfgs[i].eval_episodes, len(test_eps)))]
+
+    def meta(self, step: int, i: int) -> dict:
+        c = self.run_cfgs[i]
+        return {"step": step, "config": dataclasses.asdict(c), "stream": self.streams[c.seed].state_dict(),
+                "key": np.asarray(jax.random.PRNGKey(c.seed)).tolist()}
+
+    def evaluate(self, step, states, lanes):
+        block = self.axis.to_local(states.params)
+        out = {}
+        for k in lanes:
+            params, episodes = take(block, k), self.held_out(self.config(k))
+            record = {"step": step, "split": "test", **evaluate(self.variant, params, episodes, self.cfgs[0].unroll)}
+            out[k] = (record, prediction_image(self.variant, params, episodes[0]))
+        return out
+
+    def divergences(self, diverged: dict) -> dict[int, dict]:
+        """Every divergence of this block's configurations, before a resume and since."""
+        return {**self.earlier, **{self.config(k): d.as_dict() for k, d in diverged.items()}}
+
+    def save(self, step, states, saves, alive, diverged):
+        save_configs(self.ckpts, [(self.config(k), at, self.meta(at, self.config(k))) for k, at in saves],
+                     states, self.axis)
+        live = {self.config(k): alive[k] for k in range(self.lanes) if self.real[k]}
+        every_alive, every_divergence = gather_progress(live, self.divergences(diverged), len(self.cfgs))
+        if is_primary():
+            write_progress(self.runs[0].path.parent, step, every_alive, every_divergence)
+        return None
+
+
 def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None, resume: bool) -> list[dict]:
     cfgs = grid.configs(base)
     axis = ConfigAxis.create(base.devices, len(cfgs))
     mine = [i for i in axis.local if i < len(cfgs)]  # the configurations this process holds
-    pos = {i: k for k, i in enumerate(axis.local)}  # ... and where they are in its block
-    cache = run_dir.parent / "data-cache"
+    cache = RunDir(run_dir).data_cache
 
     def prepare():
         episodes = {c.seed: load_episodes(c, cache) for c in cfgs}
@@ -134,12 +176,13 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
     runs = [RunDir(run_dir / grid.name(c)) for c in cfgs]
     ckpts = [run.checkpoints(max(SWEEP_KEEP, c.keep_checkpoints), primary=axis.owner(i))
              for i, (c, run) in enumerate(zip(cfgs, runs))]
-    names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
     done = read_progress(run_dir, len(cfgs)) if resume else {"step": 0, "alive": [True] * len(cfgs), "diverged": {}}
-    start, diverged = int(done["step"]), done["diverged"]
+    start = int(done["step"])
+    job = SweepRunJob(variant, cfgs, run_cfgs, streams, base.steps, axis, runs, ckpts, episodes,
+                      {i: d for i, d in done["diverged"].items() if i in mine})
     resumed = None
     if start > 0:
-        fresh, _ = init_sweep(variant, held_configs(cfgs, axis))
+        fresh, _ = init_sweep(variant, job.held)
         restored, cursors = restore_configs(runs, ckpts, cfgs, take(fresh, 0), done, axis)
         block = [restored[i] if i in restored else take(fresh, k) for k, i in enumerate(axis.local)]
         resumed = (stack(block), np.array([i < len(cfgs) and done["alive"][i] for i in axis.local]))
@@ -152,88 +195,37 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
             runs[i].evals.truncate(0)
     for i in mine:
         runs[i].write_config(run_cfgs[i])
-
-    def meta(step: int, i: int) -> dict:
-        c = run_cfgs[i]
-        return {"step": step, "config": dataclasses.asdict(c), "stream": streams[c.seed].state_dict(),
-                "key": np.asarray(jax.random.PRNGKey(c.seed)).tolist()}
-
+    states, alive = job.init(resumed)
+    sinks = [RunWriter(runs[i], start, cfgs[i].tensorboard) if i < len(cfgs) else NullSink() for i in axis.local]
+    plan = Plan(steps=base.steps, start=start, eval_every=base.eval_every, checkpoint_every=base.checkpoint_every,
+                final_eval=False)
     show = (sys.stderr.isatty() if progress is None else progress) and is_primary()
-    bar = tqdm(total=base.steps, initial=min(start, base.steps), disable=not show,
-               desc=f"sweep {base.variant} x{len(cfgs)}", unit="step")
-    frames = base.batch * base.unroll
-    pending: dict[int, list[dict]] = {i: [] for i in mine}
-    newly_diverged: dict[int, dict] = {}  # index -> checkpoint meta of its last good state, saved at the next checkpoint
-    sweep_fps: list[float] = []
-
-    def held_out(i: int) -> list:
-        test_eps = episodes[cfgs[i].seed][1]
-        return [test_eps[j] for j in range(min(cfgs[i].eval_episodes, len(test_eps)))]
-
-    def callback(step: int, metrics: dict, seconds: float, states: TrainState) -> None:
-        sweep_fps.append(len(cfgs) * frames / max(seconds, 1e-9))
-        for i in mine:
-            k = pos[i]
-            if not metrics["alive_before"][k]:
-                continue
-            if metrics["diverged"][k]:
-                diverged[i] = {"diverged_at": step, "diverged_group": names[int(metrics["worst_group"][k])],
-                               "diverged_ratio": float(metrics["max_ratio"][k]),
-                               "finite": bool(metrics["finite"][k])}
-                newly_diverged[i] = meta(step, i)
-                continue
-            pending[i].append(step_record(step, take(metrics, k), names, frames / max(seconds, 1e-9)))
-            tbs[i].step(pending[i][-1])
-        done = step + 1
-        live = {i: bool(metrics["alive_before"][pos[i]] and not metrics["diverged"][pos[i]]) for i in mine}
-        if base.eval_every and done % base.eval_every == 0 and done < base.steps:
-            block = axis.to_local(states.params)
-            for i in (i for i in mine if live[i]):
-                params = take(block, pos[i])
-                record = {"step": done, "split": "test", **evaluate(variant, params, held_out(i), cfgs[i].unroll)}
-                runs[i].evals.append([record])
-                tbs[i].eval(record)
-                tbs[i].predictions(done, variant, params, held_out(i)[0])
-        if done % base.checkpoint_every == 0 or done == base.steps:
-            for i in mine:
-                runs[i].metrics.append(pending[i])
-                pending[i] = []
-            saves = [(i, done, meta(done, i)) for i in mine if live[i]]
-            saves += [(i, m["step"], m) for i, m in sorted(newly_diverged.items())]
-            save_configs(ckpts, saves, states, axis)
-            newly_diverged.clear()
-            for i in mine:
-                tbs[i].flush()
-            alive, every_divergence = gather_progress(live, diverged, len(cfgs))
-            if is_primary():
-                write_progress(run_dir, done, alive, every_divergence)
-        bar.update(1)
-        bar.set_postfix(loss=f"{float(np.mean(metrics['loss'])):.4f}", fps=f"{sweep_fps[-1]:.0f}")
-
-    tbs = {i: TBLog(runs[i].tb_dir, start, cfgs[i].tensorboard) for i in mine}
-    for i in mine:
-        tbs[i].replay_evals(runs[i].evals.read(), start)
-    states, _ = run_grid(variant, cfgs, streams, base.steps, callback, start=start, resumed=resumed, axis=axis)
-    bar.close()
-    rows = []
-    for i in mine:
-        params = take(states, pos[i]).params
-        rows.append([i, _result_row(variant, run_cfgs[i], runs[i], params, episodes[cfgs[i].seed], diverged.get(i))])
-        final = runs[i].evals.read()[-1]  # the final held-out evaluation
-        tbs[i].eval(final)
-        tbs[i].predictions(final["step"], variant, params, held_out(i)[0])
-        tbs[i].close()
+    with contextlib.ExitStack() as closing:
+        for sink in sinks:
+            closing.callback(sink.close)
+        result = host_loop(job, states, plan, sinks, alive, progress=show)
+        block = job.local_states(result.state)
+        diverged = job.divergences(result.diverged)
+        rows = []
+        for k, i in enumerate(axis.local):
+            if i < len(cfgs):
+                rows.append([i, _result_row(variant, run_cfgs[i], runs[i], sinks[k], take(block, k).params,
+                                            episodes[cfgs[i].seed], diverged.get(i))])
     rows = [row for _, row in sorted((pair for part in allgather_json(rows) for pair in part), key=lambda p: p[0])]
     if is_primary():
         # The first step compiles; report the steady state.
-        steady = sweep_fps[1:] or sweep_fps
-        summary = {"configs": len(cfgs), "sweep_fps": float(np.median(steady)), "rows": rows}
+        steady = result.seconds[1:] or result.seconds
+        frames = len(cfgs) * base.batch * base.unroll
+        summary = {"configs": len(cfgs), "sweep_fps": float(np.median([frames / max(t, 1e-9) for t in steady]))
+                   if steady else None, "rows": rows}
         atomic_write_text(run_dir / "results.json", json.dumps(summary, indent=2) + "\n")
         atomic_write_text(run_dir / "results.md", format_results(rows) + "\n")
     return rows
 
 
-def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, params, episodes, diverged: dict | None) -> dict:
+def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, sink, params, episodes, diverged: dict | None) -> dict:
+    """A configuration's row of the sweep's table; its final held-out evaluation goes to
+    `sink` (at its last step: the step it diverged at, or the last)."""
     train_eps, test_eps = episodes
     row = {"name": run.path.name, "run_dir": str(run.path),
            **{k: getattr(cfg, k) for k in GRID_FIELDS}, "diverged_at": None}
@@ -249,7 +241,7 @@ def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, params, episodes,
         row.update(prefixed(scores, split))
         if split == "test":
             steps = row["diverged_at"] if row["diverged_at"] is not None else cfg.steps
-            run.evals.append([{"step": steps, "split": "test", **scores}])
+            sink.evaluation({"step": steps, "split": "test", **scores}, prediction_image(variant, params, eps[0]))
     return row
 
 
@@ -289,26 +281,18 @@ def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, th
                                         train_eps), Path(data_cache))
     cfgs = Grid(lr=tuple(candidates)).configs(base)
     variant = make_variant(base.variant, base.arch)
-    streams = make_streams(cfgs, lambda c: train_eps)
-    names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
-    largest = np.zeros(len(cfgs))
-    rejected: dict[int, dict] = {}
+    job = SweepJob(variant, cfgs, make_streams(cfgs, lambda c: train_eps), probe_steps,
+                   ConfigAxis.create(base.devices, len(cfgs)))
+    job.desc = f"lr-search x{len(cfgs)}"
+    states, alive = job.init()
+    sinks = [Sink() for _ in range(job.lanes)]
     show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(total=probe_steps, disable=not show, desc=f"lr-search x{len(cfgs)}", unit="step")
-
-    def callback(step: int, metrics: dict, seconds: float, states: TrainState) -> None:
-        for i in range(len(cfgs)):
-            if not metrics["alive_before"][i]:
-                continue
-            ratio = float(metrics["max_ratio"][i])
-            largest[i] = max(largest[i], ratio if math.isfinite(ratio) else math.inf)
-            if metrics["diverged"][i]:
-                rejected[i] = {"step": step, "group": names[int(metrics["worst_group"][i])], "ratio": ratio,
-                               "finite": bool(metrics["finite"][i])}
-        bar.update(1)
-
-    run_grid(variant, cfgs, streams, probe_steps, callback, axis=ConfigAxis.create(base.devices, len(cfgs)))
-    bar.close()
+    result = host_loop(job, states, Plan(steps=probe_steps, final_eval=False), sinks, alive, progress=show)
+    largest = [max([r["max_ratio"] for r in sink.steps]
+                   + ([result.diverged[k].ratio if result.diverged[k].finite else math.inf]
+                      if k in result.diverged else []), default=0.0) for k, sink in enumerate(sinks)]
+    rejected = {k: {"step": d.step, "group": d.group, "ratio": d.ratio, "finite": d.finite}
+                for k, d in result.diverged.items()}
     results = [{"lr": c.lr, "max_ratio": float(largest[i]), "rejected": rejected.get(i)} for i, c in enumerate(cfgs)]
     passing = [r["lr"] for r in results if r["rejected"] is None]
     return {"chosen": max(passing) if passing else None, "threshold": threshold, "probe_steps": probe_steps,

@@ -102,9 +102,10 @@ class TBLog:
             self.eval(record)
         return kept
 
-    def predictions(self, step: int, variant: Variant, params, episode: Episode) -> None:
+    def image(self, step: int, image: np.ndarray) -> None:
+        """The image `predictions` at `step` (a `prediction_image`)."""
         if self.writer is not None:
-            self.writer.add_image("predictions", prediction_image(variant, params, episode), step, dataformats="HW")
+            self.writer.add_image("predictions", image, step, dataformats="HW")
 
     def flush(self) -> None:
         if self.writer is not None:

@@ -1,5 +1,5 @@
 """`train_run`: start or resume the run of a config in a run directory. Controller variants
-train online against the game (`cdrl.runs.online`), the others offline on recorded
+and PPO train online against the game (`cdrl.runs.online`), the others offline on recorded
 episodes (`cdrl.runs.offline`), on one device or data parallel over several, which may belong
 to several processes (`cdrl train --distributed`: process 0 holds the lock and writes the
 run's files)."""
@@ -8,11 +8,10 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
-from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import all_or_none, is_primary
 from cdrl.runs.offline import offline_train_run
-from cdrl.runs.online import online_train_run
+from cdrl.runs.online import online_train_run, ppo_train_run
 from cdrl.runs.rundir import RunDir
 
 
@@ -34,8 +33,8 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
 
     with all_or_none(lock, "locking the run directory"):  # every process knows before any writes
         resolved = all_or_none(lambda: run.config_for(cfg, resume, overrides), "reading the run's config")
-        online = make_variant(resolved.variant, resolved.arch).has_controller
-        if online and resolved.devices != 1:
-            raise ValueError(f"devices={resolved.devices}: controller variants train online on one device "
+        if resolved.kind != "offline" and resolved.devices != 1:
+            raise ValueError(f"devices={resolved.devices}: controller variants and ppo train online on one device "
                              "(data-parallel training covers the offline variants); use --devices 1")
-        return (online_train_run if online else offline_train_run)(resolved, run, resume, progress)
+        runs = {"offline": offline_train_run, "online": online_train_run, "ppo": ppo_train_run}
+        return runs[resolved.kind](resolved, run, resume, progress)

@@ -154,7 +154,7 @@ def chunk_objective(variant: Variant, outs, stats, hp: OnlineHParams):
     terms = {"obs_bce": bce_with_logits(outs["logits"], target),
              "copy_bce": jnp.mean(copy_last_bce(jax.lax.stop_gradient(outs["obs"]), target)),
              "target_entropy": jnp.mean(target_entropy(target))}
-    if getattr(variant, "predicts_reward", False):
+    if variant.predicts_reward:
         terms["reward_mse"] = jnp.mean(jnp.square(outs["pred_reward"] - stats["reward"]))
     model_loss = terms["obs_bce"] + hp.reward_weight * terms.get("reward_mse", 0.0)
     return model_loss, jnp.mean(outs["pred_reward"]), terms
@@ -174,9 +174,10 @@ def _rollout(variant: Variant, game, cfg: OnlineConfig, params, state: OnlineSta
     return (model_loss, pred_reward), (new_state, terms, stats, noise_std)
 
 
-def _ascent_scope(tree, ascent_all):
+def _ascent_scope(variant: Variant, tree, ascent_all):
     """The ascent gradient restricted to the controller D_a, or everywhere when `ascent_all`."""
-    return {k: (v if k == "act_dec" else jax.tree.map(lambda x: ascent_all * x, v)) for k, v in tree.items()}
+    return {k: (v if k in variant.controller_groups else jax.tree.map(lambda x: ascent_all * x, v))
+            for k, v in tree.items()}
 
 
 def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState, hp: OnlineHParams, env_params):
@@ -188,7 +189,7 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
     lam = hp.ascent * active
     (g_model,) = vjp((jnp.ones(()), jnp.zeros(())))
     (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
-    grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _ascent_scope(g_reward, hp.ascent_all))
+    grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _ascent_scope(variant, g_reward, hp.ascent_all))
     new_params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, params, state.train.opt_state, grads,
                                                   model_loss)
     # A refused update keeps the old parameters; the games go on.
