@@ -9,16 +9,14 @@ from cdrl.models import make_variant
 from cdrl.models.arch import TINY
 from cdrl.training import online
 from cdrl.training.online import OnlineConfig, OnlineHParams
+import games
 
 ARCH = TINY
 
 
 @pytest.fixture(scope="module")
 def game():
-    from envs.slither import Slither
-
-    g = Slither(num_opponents=2, max_segments=16, arena_size=1000.0)
-    return g, g.default_params.replace(max_steps=np.int32(40))
+    return games.test_game()
 
 
 STEP = online.online_step
@@ -48,7 +46,7 @@ def test_game_outputs_carry_no_gradient(game):
         def two_steps(p):
             c = online.rollout_carry(state)
             c, _ = online.transition(v, g, p, env_params, hp.noise_std, c)
-            fed_back = c[3]  # ã_1, executed (with noise) by the next transition
+            fed_back = c.action  # ã_1, executed (with noise) by the next transition
             c, (_, stats) = online.transition(v, g, p, env_params, hp.noise_std, c)
             return fed_back, stats, c
 
@@ -57,7 +55,7 @@ def test_game_outputs_carry_no_gradient(game):
 
         def game_outputs(p):
             _, stats, c = two_steps(p)
-            return jnp.sum(stats["reward"]) + jnp.sum(c[2]) + jnp.sum(stats["action"])
+            return jnp.sum(stats["reward"]) + jnp.sum(c.games.obs) + jnp.sum(stats["action"])
 
         return jax.grad(model_action)(p), jax.grad(game_outputs)(p)
 
@@ -113,7 +111,7 @@ def test_online_scan_equals_a_python_loop(game):
     loss_loop, pred_loop, _ = online.chunk_objective(v, stack(outs), stack(stats_loop), hp)
     np.testing.assert_allclose(metrics["loss"], loss_loop, rtol=1e-5)
     np.testing.assert_allclose(metrics["terms"]["pred_reward"], pred_loop, rtol=1e-5, atol=1e-7)
-    np.testing.assert_allclose(new_state.obs, c[2], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(new_state.games.obs, c.games.obs, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(metrics["reward"], jnp.mean(stack(stats_loop)["reward"]), rtol=1e-6)
     # The copy-last baseline and the floor on the chunk's own frames (o_t -> o_{t+1}).
     prev = np.clip(np.asarray(stack(outs)["obs"], np.float64), 0.01, 0.99)
@@ -139,21 +137,6 @@ def test_offline_variants_are_refused_online(game):
         OnlineHParams.create(scope="model")
 
 
-def _left_bonus_game(game):
-    """The test game with a reward of 1 more for every step that turns left (left pressed,
-    right not): a reward any controller can learn, for testing the reward ascent."""
-    from envs.slither import Slither
-
-    class LeftBonusSlither(Slither):
-        def step_state(self, key, state, action, params=None):
-            state, reward, terminated, truncated, info = super().step_state(key, state, action, params)
-            pressed = jnp.asarray(action) > 0.5
-            return state, reward + (pressed[1] & ~pressed[0]), terminated, truncated, info
-
-    g, _ = game
-    return LeftBonusSlither(num_opponents=g.num_opponents, max_segments=g.max_segments, arena_size=g.arena_size)
-
-
 def test_controller_learns_a_trivially_learnable_reward(game):
     """With a bonus for turning left, reward ascent teaches the controller to turn left: its
     noise-free return on held-out seeds clearly beats the uniform-random policy's."""
@@ -161,7 +144,7 @@ def test_controller_learns_a_trivially_learnable_reward(game):
     from envs.policies import get_policy
 
     _, env_params = game
-    g = _left_bonus_game(game)
+    g, _ = games.left_bonus_game()
     v = make_variant("reward_prediction", ARCH)
     cfg = OnlineConfig(num_envs=ENVS, unroll=T)
     hp = OnlineHParams.create(lr=0.1, ascent=1.0, reward_weight=0.1, warmup_steps=20, noise_std=0.3, noise_decay=0.98)

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.models import nets
-from cdrl.models.base import bce_with_logits
+from cdrl.models.base import StepInput, bce_with_logits
 from cdrl.models.observation import ClosedLoop, MainAction
 
 
@@ -58,6 +58,31 @@ class _Heads:
         if self.predicts_reward:
             out["reward"] = nets.mlp(params["reward_head"], parts[2], final_selu=False)[..., 0]
         return out
+
+    def controller_mask(self, params) -> dict:
+        """1 where a parameter belongs to the controller, the map from the core's output h to
+        ã: the FC layer's action-code columns and D_a; 0 elsewhere (a pytree like `params`).
+        What the controller's own updates (imagination, actor-critic) may change."""
+        a = self.arch
+        mask = jax.tree.map(jnp.zeros_like, params)
+        cols = (jnp.arange(sum(self.head_sizes())) >= a.obs_code) & (jnp.arange(sum(self.head_sizes()))
+                                                                     < a.obs_code + a.action_code)
+        fc = params["fc"]["dense0"]
+        mask["fc"]["dense0"] = {"kernel": jnp.broadcast_to(cols, fc["kernel"].shape).astype(jnp.float32),
+                                "bias": cols.astype(jnp.float32)}
+        mask["act_dec"] = jax.tree.map(jnp.ones_like, params["act_dec"])
+        return mask
+
+    def features(self, carry) -> jax.Array:
+        """h, the recurrent core's output, `[B, lstm_size]` (what the critic of an actor-critic reads)."""
+        return carry.h
+
+    def imagine_step(self, params, carry, frame, action):
+        """One step of the model fed its own prediction `frame` (õ_t, `[B, H, W]`) and the
+        action `action` (`[B, A]`): (carry, outputs with `logits`, the next predicted frame)."""
+        carry, out = self.step(params, carry, StepInput(obs=frame, action=action,
+                                                        is_first=jnp.zeros(action.shape[:1], bool)))
+        return carry, out
 
     def default_loss_weights(self):
         weights = {"obs_bce": 1.0}
@@ -96,6 +121,21 @@ class FinalProposal(_Heads, ClosedLoop):
     uses_action = True
     predicts_reward = True
     sign = -1.0
+
+    def features(self, carry) -> jax.Array:
+        return carry["lstm"].h
+
+    def imagine_step(self, params, carry, frame, action):
+        """Fed its own prediction, closed loop − sees the error o_t − õ_t = 0 (the thesis's
+        argument for it, section 6): the input code is E_o of a zero frame, the same for every
+        step, so imagination needs neither the decoder nor the encoder. The outputs have no
+        `logits` (the frame is not needed) and the carry's prediction is left as it was."""
+        zero = jnp.zeros((1, self.arch.image_size, self.arch.image_size), jnp.float32)
+        k_obs = nets.obs_encoder(params["obs_enc"], self.arch, zero)
+        k = jnp.concatenate([jnp.broadcast_to(k_obs, (action.shape[0], k_obs.shape[-1])),
+                             nets.mlp(params["act_enc"], action, final_selu=True)], axis=-1)
+        lstm = nets.lstm_cell(params["lstm"], carry["lstm"], k)
+        return {**carry, "lstm": lstm}, self.heads(params, self.fc(params, lstm.h))
 
 
 CONTROLLER_VARIANTS = (ActionLoop, RewardPrediction, FinalProposal)

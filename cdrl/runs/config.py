@@ -17,6 +17,7 @@ import dataclasses
 from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
 from cdrl.models.base import Variant
+from cdrl.training.dream import CONTROLLERS
 from cdrl.training.online import SCOPES
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
 
@@ -103,11 +104,19 @@ class RunConfig:
     scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
     reward_weight: float = _opt(0.1, "online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum 0.9 oscillates on it at 1)")
-    noise_std: float = _opt(0.3, "online variants: std of the exploration noise on the controller's actions")
-    noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration noise")
+    noise_std: float = _opt(0.3, "online variants: exploration: the std of the noise on the controller's actions "
+                                 "(rollout), the chance a button is drawn uniformly (imagine, critic)")
+    noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration")
     warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")
-    gamma: float = _opt(0.99, "ppo: discount of future reward")
-    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation")
+    controller: str = _opt("rollout", "online variants: how the controller learns: rollout (the thesis: reward "
+                                      "ascent through the real chunk), imagine (ascent through imagined rollouts) or "
+                                      "critic (an actor-critic in imagination); imagine and critic keep a replay buffer")
+    replay: int = _opt(64, "online variants, imagine and critic: chunks kept in the replay buffer")
+    model_updates: int = _opt(4, "online variants, imagine and critic: model updates per collected chunk")
+    horizon: int = _opt(15, "online variants, imagine and critic: imagined steps")
+    ctrl_lr: float = _opt(3e-4, "online variants, imagine and critic: Adam learning rate of the controller and critic")
+    gamma: float = _opt(0.99, "ppo, critic and imagine: discount of future reward")
+    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation; critic: of the lambda-returns")
     clip_eps: float = _opt(0.2, "ppo: clip range of the probability ratio (and of the value)")
     value_coef: float = _opt(0.5, "ppo: weight of the value loss")
     entropy_coef: float = _opt(0.01, "ppo: weight of the entropy bonus")
@@ -126,7 +135,7 @@ class RunConfig:
             object.__setattr__(self, "lr_decay_steps", self.steps)
         preset(self.preset)
         for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
-                     "action_dim", "ppo_epochs", "ppo_minibatches"):
+                     "action_dim", "ppo_epochs", "ppo_minibatches", "replay", "model_updates", "horizon"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         # The game's package is imported here, not with this module: `cdrl train --distributed`
@@ -134,7 +143,7 @@ class RunConfig:
         from envs.slither import LEVELS
 
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
-                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS)}
+                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "controller": ("rollout",) + CONTROLLERS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")

@@ -33,7 +33,9 @@ from cdrl.runs.sources import run_game, with_obs_norm
 from cdrl.runs.writer import run_writer
 from cdrl.training.loop import Job, Plan, host_loop
 from cdrl.training.monitor import group_names
+from cdrl.training.dream import DreamConfig, DreamHParams, dream_step, init_dream
 from cdrl.training.online import OnlineConfig, OnlineHParams, init_online, online_step
+from cdrl.training.optim import HParams, OptHParams
 from cdrl.training.ppo import PPOConfig, PPOHParams, init_ppo, ppo_policy, ppo_step
 
 
@@ -135,13 +137,55 @@ def _online_program(variant, game, ocfg, hp, env_params, state):
     return online_step(variant, game, ocfg, state, hp, env_params)
 
 
+def dream_setup(cfg: RunConfig):
+    """(variant, game, its parameters, static config, traced hyper-parameters) of an online run
+    whose controller learns in imagination (`cdrl.training.dream`)."""
+    variant = make_variant(cfg.variant, cfg.arch)
+    game, env_params = run_game(cfg)
+    dcfg = DreamConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay, model_updates=cfg.model_updates,
+                       horizon=cfg.horizon, controller=cfg.controller)
+    model = HParams.create(variant, opt=cfg.opt_hparams(), diverge_threshold=cfg.diverge_threshold,
+                           loss_weights={"reward_mse": cfg.reward_weight} if variant.predicts_reward else None)
+    hp = DreamHParams.create(model, ctrl_opt=OptHParams.create("adam", lr=cfg.ctrl_lr, grad_clip=100.0),
+                             ascent=cfg.ascent, explore=cfg.noise_std, explore_decay=cfg.noise_decay,
+                             warmup_steps=cfg.warmup_steps, gamma=cfg.gamma, lam=cfg.gae_lambda,
+                             entropy=cfg.entropy_coef)
+    return variant, game, env_params, dcfg, hp
+
+
+def dream_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJob:
+    variant, game, env_params, dcfg, hp = setup
+    program = functools.partial(_dream_program, variant, game, dcfg, hp, env_params)
+    return GameJob(cfg, program, ckpts, group_names(state.model.params), "controller",
+                   lambda s: controller_policy(variant, s.model.params), game, env_params,
+                   extras=("explore", "controller_on"))
+
+
+def _dream_program(variant, game, dcfg, hp, env_params, state):
+    return dream_step(variant, game, dcfg, state, hp, env_params)
+
+
+def learner(cfg: RunConfig):
+    """(setup, fresh state of the program, job maker) of a run that plays the game."""
+    if cfg.kind == "ppo":
+        setup = ppo_setup(cfg)
+        arch, game, env_params, pcfg, hp = setup
+        return setup, lambda: init_ppo(arch, game, env_params, pcfg, jax.random.PRNGKey(cfg.seed), hp), ppo_job
+    if cfg.controller == "rollout":
+        setup = online_setup(cfg)
+        variant, game, env_params, ocfg, hp = setup
+        return setup, lambda: init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp), online_job
+    setup = dream_setup(cfg)
+    variant, game, env_params, dcfg, hp = setup
+    return setup, lambda: init_dream(variant, game, env_params, dcfg, jax.random.PRNGKey(cfg.seed), hp), dream_job
+
+
 def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
+    """A controller variant, or PPO, trained against the game in `run`."""
     if not resume:
         cfg = with_obs_norm(cfg, run.data_cache)
-    setup = online_setup(cfg)
-    variant, game, env_params, ocfg, hp = setup
-    state = init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)
-    return game_run(cfg, run, resume, state, lambda ckpts, s: online_job(cfg, setup, ckpts, s), progress)
+    setup, fresh, job_of = learner(cfg)
+    return game_run(cfg, run, resume, fresh(), lambda ckpts, s: job_of(cfg, setup, ckpts, s), progress)
 
 
 def ppo_setup(cfg: RunConfig):
@@ -165,15 +209,6 @@ def _ppo_program(arch, game, pcfg, hp, env_params, state):
     return ppo_step(arch, game, pcfg, state, hp, env_params)
 
 
-def ppo_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
-    if not resume:
-        cfg = with_obs_norm(cfg, run.data_cache)
-    setup = ppo_setup(cfg)
-    arch, game, env_params, pcfg, hp = setup
-    state = init_ppo(arch, game, env_params, pcfg, jax.random.PRNGKey(cfg.seed), hp)
-    return game_run(cfg, run, resume, state, lambda ckpts, s: ppo_job(cfg, setup, ckpts, s), progress)
-
-
 def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL_SEED) -> dict[str, dict]:
     """`cdrl eval --policy RUN_DIR`: the run's learned policy (latest good checkpoint, no noise:
     a controller, or PPO's greedy policy) against the reference policies on the same held-out
@@ -182,15 +217,7 @@ def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL
     cfg = run.read_config()
     if cfg.kind == "offline":
         raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
-    if cfg.kind == "ppo":
-        setup = ppo_setup(cfg)
-        arch, game, env_params, pcfg, hp = setup
-        fresh, job_of = (lambda: init_ppo(arch, game, env_params, pcfg, jax.random.PRNGKey(cfg.seed), hp)), ppo_job
-    else:
-        setup = online_setup(cfg)
-        variant, game, env_params, ocfg, hp = setup
-        fresh = lambda: init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp)  # noqa: E731
-        job_of = online_job
+    setup, fresh, job_of = learner(cfg)
     state, _, warnings = run.read_checkpoints().restore_latest_good(jax.eval_shape(fresh))
     for w in warnings:
         print(f"warning: {w}; using an older checkpoint", file=sys.stderr)

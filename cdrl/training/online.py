@@ -72,20 +72,64 @@ class OnlineHParams:
 
 
 @flax.struct.dataclass
-class OnlineState:
-    train: TrainState  # params, optimiser state, model carry, update count
+class Games:
+    """B games as a learner sees them: their states, the frames o_t the model sees next, which
+    of them start an episode, and the running return and length of the current episodes."""
+
     env_state: Any  # [B] games
-    obs: jax.Array  # [B, H, W]: o_t, what the model sees next
-    action: jax.Array  # [B, A]: ã_t, the model's output to execute next (keeps no gradient across updates)
+    obs: jax.Array  # [B, S, S] at the model's size
     is_first: jax.Array  # [B]
-    key: jax.Array
-    episode_return: jax.Array  # [B] running return of the current episodes
+    episode_return: jax.Array  # [B]
     episode_length: jax.Array  # [B]
 
 
-def _reset_games(game, env_params, key, n: int, size: int):
+def reset_games(game, env_params, key, n: int, size: int) -> Games:
+    """`n` new games, their first frames at the model's `size`."""
     obs, env_state = jax.vmap(game.reset, in_axes=(0, None))(jax.random.split(key, n), env_params)
-    return resize_obs(obs, size), env_state
+    return Games(env_state=env_state, obs=resize_obs(obs, size), is_first=jnp.ones((n,), bool),
+                 episode_return=jnp.zeros((n,)), episode_length=jnp.zeros((n,), jnp.int32))
+
+
+def step_games(game, env_params, games: Games, executed: jax.Array, key, size: int):
+    """Every game one step on the `executed` actions `[B, A]`; a game that ends is replaced by
+    a new one at once. Returns (games after the step, the frames o_{t+1} the step led to,
+    the rewards r_{t+1}, statistics `reward`, `done`, `finished_return`, `finished_length`
+    and `action`). What the game returns carries no gradient: it is not differentiable."""
+    k_env, k_reset = jax.random.split(key)
+    executed = jax.lax.stop_gradient(executed)
+    nxt, env_state, reward, term, trunc, _ = jax.vmap(game.step, in_axes=(0, 0, 0, None))(
+        jax.random.split(k_env, executed.shape[0]), games.env_state, executed, env_params)
+    nxt = jax.lax.stop_gradient(resize_obs(nxt, size))
+    reward = jax.lax.stop_gradient(reward.astype(jnp.float32))
+    done = term | trunc
+    fresh = reset_games(game, env_params, k_reset, executed.shape[0], size)
+    ret, length = games.episode_return + reward, games.episode_length + 1
+
+    def pick(f, s):
+        return jnp.where(done.reshape(done.shape + (1,) * (s.ndim - 1)), f, s)
+
+    after = Games(env_state=jax.tree.map(pick, fresh.env_state, env_state), obs=pick(fresh.obs, nxt), is_first=done,
+                  episode_return=jnp.where(done, 0.0, ret), episode_length=jnp.where(done, 0, length))
+    stats = {"reward": reward, "done": done, "finished_return": jnp.where(done, ret, 0.0),
+             "finished_length": jnp.where(done, length, 0), "action": executed}
+    return after, nxt, reward, stats
+
+
+def copy_scores(obs: jax.Array, target: jax.Array) -> dict[str, jax.Array]:
+    """Copying the last frame and the floor on a chunk's frames `[T, B, S, S]` (o_t -> o_{t+1}):
+    the `copy_bce` and `target_entropy` terms (weight 0) beside a model's `obs_bce`, for the
+    excess ratio of its predictions."""
+    target = jax.lax.stop_gradient(target)
+    return {"copy_bce": jnp.mean(copy_last_bce(jax.lax.stop_gradient(obs), target)),
+            "target_entropy": jnp.mean(target_entropy(target))}
+
+
+@flax.struct.dataclass
+class OnlineState:
+    train: TrainState  # params, optimiser state, model carry, update count
+    games: Games
+    action: jax.Array  # [B, A]: ã_t, the model's output to execute next (keeps no gradient across updates)
+    key: jax.Array
 
 
 def init_online(variant: Variant, game, env_params, cfg: OnlineConfig, key: jax.Array,
@@ -100,50 +144,42 @@ def init_online(variant: Variant, game, env_params, cfg: OnlineConfig, key: jax.
 def _init_online(variant, game, env_params, cfg, key, hp) -> OnlineState:
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = variant.init(k_params)
-    obs, env_state = _reset_games(game, env_params, k_env, cfg.num_envs, variant.arch.image_size)
     b = cfg.num_envs
     train = TrainState(params=params, opt_state=init_opt_state(hp.opt, params),
                        carry=variant.init_carry(b), step=jnp.zeros((), jnp.int32))
-    return OnlineState(train=train, env_state=env_state, obs=obs, action=jnp.zeros((b, variant.arch.action_dim)),
-                       is_first=jnp.ones((b,), bool), key=k_run, episode_return=jnp.zeros((b,)),
-                       episode_length=jnp.zeros((b,), jnp.int32))
+    return OnlineState(train=train, games=reset_games(game, env_params, k_env, b, variant.arch.image_size),
+                       action=jnp.zeros((b, variant.arch.action_dim)), key=k_run)
 
 
-def transition(variant: Variant, game, params, env_params, noise_std, c):
-    """One step of acting and predicting on the rollout carry `c`.
+@flax.struct.dataclass
+class Rollout:
+    """What a rollout carries from one step to the next: the model's recurrent state, the
+    games, ã_t (the model's output, executed next) and the PRNG key."""
 
-    `c` = (model carry, games, o_t, ã_t, is_first, key, episode returns, episode lengths).
-    Returns (next c, (model outputs, game statistics)) with the game's outputs stop-gradiented.
-    """
-    size = variant.arch.image_size
-    model_carry, env_state, obs, action, is_first, key, ep_ret, ep_len = c
-    key, k_noise, k_env, k_reset = jax.random.split(key, 4)
-    noisy = jnp.clip(action + noise_std * jax.random.normal(k_noise, action.shape), 0.0, 1.0)
-    a_in = action + jax.lax.stop_gradient(noisy - action)  # the executed value, gradient to ã
-    model_carry, out = variant.step(params, model_carry, StepInput(obs=obs, action=a_in, is_first=is_first))
-    executed = jax.lax.stop_gradient(noisy)
-    nxt, env_state2, reward, term, trunc, _ = jax.vmap(game.step, in_axes=(0, 0, 0, None))(
-        jax.random.split(k_env, obs.shape[0]), env_state, executed, env_params)
-    nxt = jax.lax.stop_gradient(resize_obs(nxt, size))
-    reward = jax.lax.stop_gradient(reward.astype(jnp.float32))
-    done = term | trunc
-    fresh_obs, fresh_state = _reset_games(game, env_params, k_reset, obs.shape[0], size)
-    env_state = jax.tree.map(
-        lambda f, s: jnp.where(done.reshape(done.shape + (1,) * (s.ndim - 1)), f, s), fresh_state, env_state2)
-    ep_ret, ep_len = ep_ret + reward, ep_len + 1
-    stats = {"reward": reward, "done": done, "finished_return": jnp.where(done, ep_ret, 0.0),
-             "finished_length": jnp.where(done, ep_len, 0), "action": executed}
+    carry: Any
+    games: Games
+    action: jax.Array
+    key: jax.Array
+
+
+def transition(variant: Variant, game, params, env_params, noise_std, c: Rollout):
+    """One step of acting and predicting. Returns (next rollout, (model outputs, game
+    statistics)) with the game's outputs stop-gradiented."""
+    key, k_noise, k_game = jax.random.split(c.key, 3)
+    noisy = jnp.clip(c.action + noise_std * jax.random.normal(k_noise, c.action.shape), 0.0, 1.0)
+    a_in = c.action + jax.lax.stop_gradient(noisy - c.action)  # the executed value, gradient to ã
+    obs = c.games.obs
+    carry, out = variant.step(params, c.carry, StepInput(obs=obs, action=a_in, is_first=c.games.is_first))
+    games, nxt, reward, stats = step_games(game, env_params, c.games, noisy, k_game, variant.arch.image_size)
     outs = {"logits": out["logits"], "obs": obs, "target": nxt,
-            "pred_reward": out.get("reward", jnp.zeros_like(reward))}
-    c = (model_carry, env_state, jnp.where(done[:, None, None], fresh_obs, nxt),
-         jnp.where(done[:, None], 0.0, out["action"]), done, key,
-         jnp.where(done, 0.0, ep_ret), jnp.where(done, 0, ep_len))
-    return c, (outs, stats)
+            "pred_reward": out["reward"] if variant.predicts_reward else jnp.zeros_like(reward)}
+    done = games.is_first
+    return Rollout(carry=carry, games=games, action=jnp.where(done[:, None], 0.0, out["action"]), key=key), (outs, stats)
 
 
-def rollout_carry(state: OnlineState):
-    return (jax.lax.stop_gradient(state.train.carry), state.env_state, state.obs, state.action, state.is_first,
-            state.key, state.episode_return, state.episode_length)
+def rollout_carry(state: OnlineState) -> Rollout:
+    return Rollout(carry=jax.lax.stop_gradient(state.train.carry), games=state.games, action=state.action,
+                   key=state.key)
 
 
 def chunk_objective(variant: Variant, outs, stats, hp: OnlineHParams):
@@ -151,9 +187,7 @@ def chunk_objective(variant: Variant, outs, stats, hp: OnlineHParams):
     Besides the weighted terms, `copy_bce` and `target_entropy` (weight 0) score copying the
     last frame and the floor on the same frames, for the excess ratio of the predictions."""
     target = jax.lax.stop_gradient(outs["target"])
-    terms = {"obs_bce": bce_with_logits(outs["logits"], target),
-             "copy_bce": jnp.mean(copy_last_bce(jax.lax.stop_gradient(outs["obs"]), target)),
-             "target_entropy": jnp.mean(target_entropy(target))}
+    terms = {"obs_bce": bce_with_logits(outs["logits"], target), **copy_scores(outs["obs"], target)}
     if variant.predicts_reward:
         terms["reward_mse"] = jnp.mean(jnp.square(outs["pred_reward"] - stats["reward"]))
     model_loss = terms["obs_bce"] + hp.reward_weight * terms.get("reward_mse", 0.0)
@@ -167,10 +201,8 @@ def _rollout(variant: Variant, game, cfg: OnlineConfig, params, state: OnlineSta
         lambda c, _: transition(variant, game, params, env_params, noise_std, c),
         rollout_carry(state), None, length=cfg.unroll)
     model_loss, pred_reward, terms = chunk_objective(variant, outs, stats, hp)
-    model_carry, env_state, obs, action, is_first, key, ep_ret, ep_len = c
-    new_state = state.replace(train=state.train.replace(carry=model_carry), env_state=env_state, obs=obs,
-                              action=jax.lax.stop_gradient(action), is_first=is_first, key=key,
-                              episode_return=ep_ret, episode_length=ep_len)
+    new_state = state.replace(train=state.train.replace(carry=c.carry), games=c.games,
+                              action=jax.lax.stop_gradient(c.action), key=c.key)
     return (model_loss, pred_reward), (new_state, terms, stats, noise_std)
 
 

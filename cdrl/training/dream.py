@@ -1,0 +1,343 @@
+"""Online training with a replay buffer and a controller trained in imagination, as one program.
+
+`cdrl.training.online` is the thesis's online learner: each chunk the model acts, and one
+update learns from that chunk, the gradient of the predicted reward reaching the controller
+through the real chunk's BPTT. This module separates the two learners, as world-model agents
+do (Dreamer's train ratio and imagination), keeping the thesis's model and heads:
+
+1. act: B games play T steps; the model sees o_t and the executed a_t and outputs ã_{t+1}
+   (the controller D_a on the core's output). The buttons executed next are drawn from
+   Bernoulli(p) with p = (1 - ε) ã + ε / 2 (ε: the exploration, decaying per update); the
+   chunk (frames, executed buttons, rewards, episode starts, the model's carry at its start)
+   is written into a ring buffer of the last `replay` chunks;
+2. model: `model_updates` updates, each on a chunk drawn from the buffer, trained as offline
+   training trains (`cdrl.training.step.chunk_loss`: teacher-forced on the executed buttons,
+   from the carry stored with the chunk, behind the divergence guard), with the model's own
+   optimiser (SGD with momentum, the offline recipes' numbers);
+3. controller: from every real state of the last replayed chunk (the model's carries along
+   it) the model imagines `horizon` steps fed its own predictions and the controller's
+   actions (for closed loop − the error input is then zero: `FinalProposal.imagine_step`),
+   and the controller (the FC layer's action-code columns and D_a, `controller_mask`) is
+   updated with its own optimiser (Adam) on one of two objectives:
+   - `imagine`: gradient ascent on the discounted predicted reward of the imagined steps,
+     the action ã fed in as it is (deterministic, differentiated through the model);
+   - `critic`: an actor-critic in imagination (DreamerV3's recipe for discrete actions):
+     buttons drawn from Bernoulli(ã), a critic V(h) on the core's output trained on the
+     imagined λ-returns, the actor by REINFORCE with the returns normalised by their 5-95 %
+     range (at least 1) and an entropy bonus.
+   The controller objective is off for `warmup_steps` updates, while the model learns alone.
+
+The model never sees a gradient of the controller's objective, so it cannot "predict more
+reward" to please the controller (what scope `all` of the thesis's ascent does).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from cdrl.data.stream import Chunk
+from cdrl.models import nets
+from cdrl.models.base import StepInput, Variant
+from cdrl.training.online import Games, copy_scores, reset_games, step_games
+from cdrl.training.optim import HParams, OptHParams, init_opt_state
+from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
+
+CONTROLLERS = ("imagine", "critic")
+CRITIC_HIDDEN = 128
+
+
+@dataclasses.dataclass(frozen=True)
+class DreamConfig:
+    """Static shape: B games x T steps per chunk, `replay` chunks kept, `model_updates` per
+    chunk, `horizon` imagined steps, the controller's objective (one of `CONTROLLERS`)."""
+
+    num_envs: int = 8
+    unroll: int = 16
+    replay: int = 64
+    model_updates: int = 4
+    horizon: int = 15
+    controller: str = "imagine"
+
+    def __post_init__(self):
+        for name in ("num_envs", "unroll", "replay", "model_updates", "horizon"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"unknown controller objective {self.controller!r}; choose one of {CONTROLLERS}")
+
+
+@flax.struct.dataclass
+class DreamHParams:
+    """Traced numbers (a `vmap` sweep can vary any of them)."""
+
+    model: HParams  # the model's optimiser, loss weights and divergence threshold
+    ctrl_opt: OptHParams  # the controller's (and critic's) optimiser
+    ascent: jax.Array  # weight of the controller's objective (0: the model learns alone)
+    explore: jax.Array  # ε at update 0: the chance a button is drawn uniformly
+    explore_decay: jax.Array  # per update: ε_k = explore * explore_decay ** k
+    warmup_steps: jax.Array  # updates before the controller's objective is on
+    gamma: jax.Array  # discount of imagined rewards
+    lam: jax.Array  # λ of the critic's λ-returns
+    entropy: jax.Array  # the actor's entropy bonus (critic)
+
+    @classmethod
+    def create(cls, model: HParams, ctrl_opt: OptHParams | None = None, ascent=1.0, explore=0.3,
+               explore_decay=0.999, warmup_steps=100, gamma=0.95, lam=0.95, entropy=3e-3) -> "DreamHParams":
+        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        ctrl_opt = ctrl_opt if ctrl_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
+        return cls(model, ctrl_opt, f32(ascent), f32(explore), f32(explore_decay), f32(warmup_steps), f32(gamma),
+                   f32(lam), f32(entropy))
+
+
+@flax.struct.dataclass
+class Replay:
+    """A ring buffer of chunks: frames uint8 `[N, T + 1, B, S, S]` (o_0 .. o_T), executed
+    buttons `[N, T, B, A]`, rewards `[N, T, B]` (r_{t+1}), episode starts `[N, T, B]`, the
+    model's carry at each chunk's start (leading axis N), and how many are filled."""
+
+    obs: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    is_first: jax.Array
+    carry: Any
+    filled: jax.Array
+    cursor: jax.Array
+
+    def chunk(self, i) -> tuple[Chunk, Any]:
+        return Chunk(obs=self.obs[i, :-1], next_obs=self.obs[i, 1:], action=self.action[i], reward=self.reward[i],
+                     is_first=self.is_first[i]), jax.tree.map(lambda x: x[i], self.carry)
+
+
+@flax.struct.dataclass
+class DreamState:
+    model: TrainState  # the world model: params (controller included), its optimiser, acting carry, updates
+    ctrl_opt_state: Any  # the controller's optimiser state
+    critic: Any  # the critic's parameters (unused by `imagine`)
+    critic_opt_state: Any
+    replay: Replay
+    games: Games
+    action: jax.Array  # [B, A]: the buttons executed next
+    key: jax.Array
+
+
+def init_dream(variant: Variant, game, env_params, cfg: DreamConfig, key: jax.Array, hp: DreamHParams) -> DreamState:
+    if not variant.has_controller:
+        raise ValueError(f"variant {variant.name!r} has no controller; online training needs one of "
+                         "action_loop, reward_prediction, final_proposal")
+    return run_once(_init_dream, variant, game, env_params, cfg, key, hp, static_argnums=(0, 1, 3))
+
+
+def _init_dream(variant, game, env_params, cfg, key, hp) -> DreamState:
+    if not variant.predicts_reward:
+        raise ValueError(f"variant {variant.name!r} predicts no reward: a controller trained in imagination needs "
+                         "reward_prediction or final_proposal")
+    k_params, k_critic, k_env, k_run = jax.random.split(key, 4)
+    params = variant.init(k_params)
+    b, s, t, n = cfg.num_envs, variant.arch.image_size, cfg.unroll, cfg.replay
+    carry = variant.init_carry(b)
+    critic = nets.init_mlp(k_critic, (variant.arch.lstm_size, CRITIC_HIDDEN, 1), final_selu=False)
+    replay = Replay(obs=jnp.zeros((n, t + 1, b, s, s), jnp.uint8),
+                    action=jnp.zeros((n, t, b, variant.arch.action_dim), jnp.float32),
+                    reward=jnp.zeros((n, t, b), jnp.float32), is_first=jnp.zeros((n, t, b), bool),
+                    carry=jax.tree.map(lambda x: jnp.zeros((n,) + x.shape, x.dtype), carry),
+                    filled=jnp.zeros((), jnp.int32), cursor=jnp.zeros((), jnp.int32))
+    model = TrainState(params=params, opt_state=init_opt_state(hp.model.opt, params), carry=carry,
+                       step=jnp.zeros((), jnp.int32))
+    return DreamState(model=model, ctrl_opt_state=init_opt_state(hp.ctrl_opt, params), critic=critic,
+                      critic_opt_state=init_opt_state(hp.ctrl_opt, critic), replay=replay,
+                      games=reset_games(game, env_params, k_env, b, s),
+                      action=jnp.zeros((b, variant.arch.action_dim)), key=k_run)
+
+
+def draw_buttons(key, probs: jax.Array) -> jax.Array:
+    """Buttons pressed (1.0) with probability `probs`, else released (0.0)."""
+    return (jax.random.uniform(key, probs.shape) < probs).astype(jnp.float32)
+
+
+def _act(variant: Variant, game, cfg: DreamConfig, state: DreamState, env_params, explore):
+    """T steps of acting (no gradient). Returns (state, the chunk's frames, executed buttons,
+    rewards and episode starts `[T, B, ...]`, game statistics)."""
+    params = state.model.params
+
+    def body(c, _):
+        carry, games, action, key = c
+        key, k_buttons, k_game = jax.random.split(key, 3)
+        obs, is_first = games.obs, games.is_first
+        carry, out = variant.step(params, carry, StepInput(obs=obs, action=action, is_first=is_first))
+        games, nxt, reward, stats = step_games(game, env_params, games, action, k_game, variant.arch.image_size)
+        probs = (1.0 - explore) * out["action"] + explore * 0.5
+        next_action = jnp.where(games.is_first[:, None], 0.0, draw_buttons(k_buttons, probs))
+        record = {"obs": obs, "next_obs": nxt, "action": action, "reward": reward, "is_first": is_first}
+        return (carry, games, next_action, key), (record, {**stats, "pred_reward": out["reward"]})
+
+    (carry, games, action, key), (chunk, stats) = jax.lax.scan(
+        body, (state.model.carry, state.games, state.action, state.key), None, length=cfg.unroll)
+    state = state.replace(model=state.model.replace(carry=carry), games=games, action=action, key=key)
+    return state, chunk, stats
+
+
+def _store(replay: Replay, chunk: dict, carry0) -> Replay:
+    """Write a chunk (and the model's carry at its start) over the oldest one."""
+    frames = jnp.concatenate([chunk["obs"], chunk["next_obs"][-1:]], axis=0)
+    i = replay.cursor
+    put = lambda buf, x: buf.at[i].set(x.astype(buf.dtype))  # noqa: E731
+    return replay.replace(obs=put(replay.obs, jnp.round(frames * 255.0)), action=put(replay.action, chunk["action"]),
+                          reward=put(replay.reward, chunk["reward"]), is_first=put(replay.is_first, chunk["is_first"]),
+                          carry=jax.tree.map(put, replay.carry, carry0),
+                          filled=jnp.minimum(replay.filled + 1, replay.obs.shape[0]),
+                          cursor=(replay.cursor + 1) % replay.obs.shape[0])
+
+
+def _model_updates(variant: Variant, cfg: DreamConfig, state: DreamState, hp: DreamHParams, key):
+    """`model_updates` guarded updates of the model, each on a chunk drawn from the buffer.
+    Returns (state, the last chunk and its start carry, metrics of the updates)."""
+    controller = variant.controller_mask(state.model.params)
+
+    def update(model: TrainState, k):
+        chunk, carry = state.replay.chunk(jax.random.randint(k, (), 0, state.replay.filled))
+        (loss, (_, terms, _)), grads = jax.value_and_grad(
+            lambda p: chunk_loss(variant, p, carry, hp.model, chunk), has_aux=True)(model.params)
+        grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, controller)  # the controller is not the model's
+        params, opt_state, guard = guarded_update(hp.model.opt, hp.model.diverge_threshold, model.params,
+                                                  model.opt_state, grads, loss)
+        return model.replace(params=params, opt_state=opt_state), ({"loss": loss, "terms": terms, **guard}, (chunk, carry))
+
+    model, (metrics, (chunks, carries)) = jax.lax.scan(update, state.model, jax.random.split(key, cfg.model_updates))
+    last = jax.tree.map(lambda x: x[-1], (chunks, carries))
+    return state.replace(model=model), last, metrics
+
+
+def _starts(variant: Variant, params, chunk: Chunk, carry):
+    """The real states imagination starts from, flattened to `[T * B, ...]`: the model's carry
+    after every step of `chunk`, its action output there (the buttons it would press next)
+    and its predicted next frame (what it is fed first)."""
+
+    def body(c, x):
+        c, out = variant.step(params, c, x)
+        return c, (c, out["action"], jax.nn.sigmoid(out["logits"]))
+
+    _, (carries, actions, frames) = jax.lax.scan(body, carry, step_inputs(chunk))
+    flat = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
+    return jax.tree.map(flat, carries), flat(actions), flat(frames)
+
+
+def imagine(variant: Variant, cfg: DreamConfig, params, carry, action, frame, key, sample: bool):
+    """`horizon` steps of the model fed its own predictions from `carry`, taking the pending
+    `action`. With `sample` the buttons executed are drawn from Bernoulli(ã) (their
+    probability and draw are returned); without, ã itself is fed in. Returns per step `[H, N]`:
+    rewards r̃, features h, the action probabilities and the executed buttons."""
+
+    def body(c, k):
+        carry, action, frame = c
+        executed = draw_buttons(k, action) if sample else action
+        carry, out = variant.imagine_step(params, carry, frame, executed)
+        frame = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
+        return (carry, out["action"], frame), {"reward": out["reward"], "h": variant.features(carry),
+                                               "probs": action, "buttons": executed}
+
+    _, traj = jax.lax.scan(body, (carry, action, frame), jax.random.split(key, cfg.horizon))
+    return traj
+
+
+def lambda_returns(rewards, values, last, gamma, lam):
+    """R_k = r_k + γ ((1 - λ) V_{k+1} + λ R_{k+1}), R_H = V_H: λ-returns of `[H, N]` rewards
+    with the values V_1 .. V_H (`values`, after each step) and the bootstrap `last` = V_H."""
+    def body(nxt, x):
+        r, v_next = x
+        ret = r + gamma * ((1.0 - lam) * v_next + lam * nxt)
+        return ret, ret
+
+    _, rets = jax.lax.scan(body, last, (rewards, values), reverse=True)
+    return rets
+
+
+def critic_value(critic, h):
+    return nets.mlp(critic, h, final_selu=False)[..., 0]
+
+
+def _controller_objective(variant, cfg, hp, params, critic, starts, key):
+    """The controller's loss (to minimise) and the critic's, with their terms."""
+    carry, action, frame = starts
+    sample = cfg.controller == "critic"
+    traj = imagine(variant, cfg, params, carry, action, frame, key, sample)
+    discount = hp.gamma ** jnp.arange(cfg.horizon, dtype=jnp.float32)[:, None]
+    if not sample:
+        objective = jnp.mean(jnp.sum(discount * traj["reward"], axis=0))
+        return -objective, (jnp.zeros(()), {"imagined_return": objective})
+    values = critic_value(critic, jax.lax.stop_gradient(traj["h"]))  # V after each imagined step
+    rewards = jax.lax.stop_gradient(traj["reward"])
+    rets = jax.lax.stop_gradient(lambda_returns(rewards, values, values[-1], hp.gamma, hp.lam))
+    h0 = jax.lax.stop_gradient(variant.features(carry))
+    base = critic_value(critic, h0)  # V of the state each step's buttons were drawn in
+    before = jnp.concatenate([base[None], values[:-1]], axis=0)
+    critic_loss = 0.5 * jnp.mean(jnp.square(before - rets))
+    scale = jnp.maximum(1.0, jnp.percentile(rets, 95) - jnp.percentile(rets, 5))
+    adv = jax.lax.stop_gradient((rets - before) / scale)
+    p = jnp.clip(traj["probs"], 1e-6, 1 - 1e-6)
+    logp = jnp.sum(traj["buttons"] * jnp.log(p) + (1 - traj["buttons"]) * jnp.log1p(-p), axis=-1)
+    ent = -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
+    actor_loss = -jnp.mean(logp * adv) - hp.entropy * jnp.mean(ent)
+    return actor_loss, (critic_loss, {"imagined_return": jnp.mean(rets[0]), "critic_loss": critic_loss,
+                                      "entropy": jnp.mean(ent)})
+
+
+def _controller_update(variant, cfg, state: DreamState, hp: DreamHParams, starts, key, on):
+    params = state.model.params
+    mask = variant.controller_mask(params)
+
+    def losses(p, critic):
+        actor, (critic_loss, terms) = _controller_objective(variant, cfg, hp, p, critic, starts, key)
+        return hp.ascent * on * actor + critic_loss, (actor, terms)
+
+    (total, (actor, terms)), (g_params, g_critic) = jax.value_and_grad(losses, argnums=(0, 1), has_aux=True)(
+        params, state.critic)
+    g_params = jax.tree.map(lambda g, m: g * m, g_params, mask)
+    new, opt_state, _ = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, params, state.ctrl_opt_state,
+                                       g_params, total)
+    new = jax.tree.map(lambda n, o, m: jnp.where(m > 0, n, o), new, params, mask)  # only the controller moves
+    critic, critic_opt, _ = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, state.critic,
+                                           state.critic_opt_state, g_critic, total)
+    state = state.replace(model=state.model.replace(params=new), ctrl_opt_state=opt_state, critic=critic,
+                          critic_opt_state=critic_opt)
+    return state, {"controller_loss": actor, **terms}
+
+
+def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, hp: DreamHParams, env_params):
+    """Act, store, update the model, update the controller: see the module docstring."""
+    step = state.model.step.astype(jnp.float32)
+    explore = hp.explore * hp.explore_decay ** step
+    carry0 = state.model.carry
+    key, k_model, k_ctrl = jax.random.split(state.key, 3)
+    state, chunk, stats = _act(variant, game, cfg, state.replace(key=key), env_params, explore)
+    state = state.replace(replay=_store(state.replay, chunk, jax.lax.stop_gradient(carry0)))
+    scores = copy_scores(chunk["obs"], chunk["next_obs"])
+    state, (last_chunk, last_carry), model_m = _model_updates(variant, cfg, state, hp, k_model)
+    on = (step >= hp.warmup_steps).astype(jnp.float32)
+    starts = _starts(variant, jax.lax.stop_gradient(state.model.params), last_chunk, last_carry)
+    state, ctrl_terms = _controller_update(variant, cfg, state, hp, starts, k_ctrl, on)
+    state = state.replace(model=state.model.replace(step=state.model.step + 1))
+    last = jax.tree.map(lambda x: x[-1], model_m)
+    metrics = {
+        "loss": last["loss"],
+        "terms": {**last["terms"], **scores, **ctrl_terms, "pred_reward": jnp.mean(stats["pred_reward"])},
+        "reward": jnp.mean(stats["reward"]),
+        "episodes": jnp.sum(stats["done"]),
+        "return_sum": jnp.sum(stats["finished_return"]),
+        "length_sum": jnp.sum(stats["finished_length"]),
+        "action_mean": jnp.mean(chunk["action"], axis=(0, 1)),
+        "explore": explore,
+        "controller_on": on,
+        "ratios": last["ratios"],
+        "max_ratio": jnp.max(model_m["max_ratio"]),
+        "worst_group": last["worst_group"],
+        "finite": jnp.all(model_m["finite"]),
+        "diverged": jnp.any(model_m["diverged"]),
+    }
+    return state, metrics
+
+
+dream_step = jax.jit(dream_step_fn, static_argnums=(0, 1, 2), donate_argnums=3)
