@@ -40,6 +40,11 @@ class _Heads:
         k_base, k_fc, k_act, k_rew = jax.random.split(key, 4)
         params = self._init_common(k_base)
         params["fc"] = self._init_core_fc(k_fc, sum(self.head_sizes()))
+        # The FC gain is for the decoder, whose SELU layers want unit-variance codes; the action
+        # and reward codes feed small MLPs that it would only make stiff (at lr 1 with gain 5 the
+        # reward head's squared error grows without bound within a few updates).
+        cols = jnp.arange(sum(self.head_sizes())) < a.obs_code
+        params["fc"]["dense0"]["kernel"] = params["fc"]["dense0"]["kernel"] * jnp.where(cols, 1.0, 1.0 / a.fc_init_gain)
         params["act_dec"] = nets.init_mlp(
             k_act, (a.action_code, *reversed(a.action_hidden), a.action_dim), final_selu=False
         )

@@ -26,12 +26,12 @@ RECIPES: dict[str, dict[str, object]] = {
     "thesis": {
         "optimizer": "sgd", "lr": 0.1, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.0,
         "lr_schedule": "constant", "lr_warmup": 0, "batch": 1, "unroll": 32, "obs_norm": "none",
-        "fc_init_gain": 1.0,
+        "fc_init_gain": 1.0, "reward_weight": 0.1,
     },
     "fast": {
         "optimizer": "sgd", "lr": 2.0, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.0,
         "lr_schedule": "constant", "lr_warmup": 0, "batch": 4, "unroll": 8, "obs_norm": "data",
-        "fc_init_gain": 5.0,
+        "fc_init_gain": 5.0, "reward_weight": 0.1,
     },
 }
 # Controller variants train online against the game on their own actions; their reward
@@ -41,12 +41,21 @@ ONLINE_OVERRIDES: dict[str, dict[str, object]] = {
     "thesis": {},
     "fast": {"lr": 0.1, "batch": 8, "unroll": 16, "fc_init_gain": 1.0},
 }
+# With a replay buffer (controllers imagine and critic) the model learns teacher-forced, as
+# offline, so `fast` takes the offline rate of the closed loops (lr 1; lr 2 diverges online as
+# offline) and its FC gain; the reward term's weight is 0.01 (at lr 1 and weight 0.1 the reward
+# head's squared error grows without bound within 5 updates).
+DREAM_OVERRIDES: dict[str, dict[str, object]] = {
+    "thesis": {},
+    "fast": {"lr": 1.0, "fc_init_gain": 5.0, "reward_weight": 0.01},
+}
 # Policies trained without a world model, and what every recipe sets for them: PPO's usual
 # numbers (Adam lr 2.5e-4, gradient norm clipped at 0.5, 16 games x 32 steps per update).
 AGENTS = {"ppo": "proximal policy optimisation: model-free, from the same frames (cdrl.training.ppo)"}
 AGENT_RECIPE: dict[str, object] = {
     "optimizer": "adam", "lr": 2.5e-4, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.5,
     "lr_schedule": "constant", "lr_warmup": 0, "batch": 16, "unroll": 32, "obs_norm": "data", "fc_init_gain": 1.0,
+    "reward_weight": 0.0,
 }
 DEFAULT_RECIPE = "fast"
 OBS_NORMS = ("none", "data")
@@ -103,7 +112,8 @@ class RunConfig:
     env: str = _opt("", "game parameters over the level's, e.g. 'max_steps=300,pellet_init_fill=0.3'")
     scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
-    reward_weight: float = _opt(0.1, "online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum 0.9 oscillates on it at 1)")
+    reward_weight: float = _recipe_opt("online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum "
+                                       "0.9 oscillates on it at 1)")
     noise_std: float = _opt(0.3, "online variants: exploration: the std of the noise on the controller's actions "
                                  "(rollout), the chance a button is drawn uniformly (imagine, critic)")
     noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration")
@@ -162,8 +172,10 @@ class RunConfig:
         """The options the run's recipe sets for its variant."""
         if self.variant in AGENTS:
             return AGENT_RECIPE
-        online = ONLINE_OVERRIDES[self.recipe] if VARIANTS[self.variant].has_controller else {}
-        return {**RECIPES[self.recipe], **online}
+        if not VARIANTS[self.variant].has_controller:
+            return RECIPES[self.recipe]
+        dream = DREAM_OVERRIDES[self.recipe] if self.controller != "rollout" else {}
+        return {**RECIPES[self.recipe], **ONLINE_OVERRIDES[self.recipe], **dream}
 
     @property
     def kind(self) -> str:

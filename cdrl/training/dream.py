@@ -10,22 +10,24 @@ do (Dreamer's train ratio and imagination), keeping the thesis's model and heads
    Bernoulli(p) with p = (1 - ε) ã + ε / 2 (ε: the exploration, decaying per update); the
    chunk (frames, executed buttons, rewards, episode starts, the model's carry at its start)
    is written into a ring buffer of the last `replay` chunks;
-2. model: `model_updates` updates, each on a chunk drawn from the buffer, trained as offline
-   training trains (`cdrl.training.step.chunk_loss`: teacher-forced on the executed buttons,
-   from the carry stored with the chunk, behind the divergence guard), with the model's own
-   optimiser (SGD with momentum, the offline recipes' numbers);
-3. controller: from every real state of the last replayed chunk (the model's carries along
-   it) the model imagines `horizon` steps fed its own predictions and the controller's
-   actions (for closed loop − the error input is then zero: `FinalProposal.imagine_step`),
-   and the controller (the FC layer's action-code columns and D_a, `controller_mask`) is
-   updated with its own optimiser (Adam) on one of two objectives:
-   - `imagine`: gradient ascent on the discounted predicted reward of the imagined steps,
-     the action ã fed in as it is (deterministic, differentiated through the model);
-   - `critic`: an actor-critic in imagination (DreamerV3's recipe for discrete actions):
-     buttons drawn from Bernoulli(ã), a critic V(h) on the core's output trained on the
-     imagined λ-returns, the actor by REINFORCE with the returns normalised by their 5-95 %
-     range (at least 1) and an entropy bonus.
-   The controller objective is off for `warmup_steps` updates, while the model learns alone.
+2. learn, `model_updates` times: draw a chunk from the buffer;
+   - model: one update on it, as offline training makes it (`cdrl.training.step.chunk_loss`:
+     teacher-forced on the executed buttons, from the carry stored with the chunk, behind the
+     divergence guard), with the model's own optimiser (SGD with momentum, the offline
+     recipes' numbers);
+   - controller: from every real state of that chunk (the model's carries along it) the
+     model imagines `horizon` steps fed its own predictions and the controller's
+     actions (for closed loop − the error input is then zero: `FinalProposal.imagine_step`),
+     and the controller (the FC layer's action-code columns and D_a, `controller_mask`) is
+     updated with its own optimiser (Adam) on one of two objectives:
+     - `imagine`: gradient ascent on the discounted predicted reward of the imagined steps,
+       the action ã fed in as it is (deterministic, differentiated through the model);
+     - `critic`: an actor-critic in imagination (DreamerV3's recipe for discrete actions):
+       buttons drawn from Bernoulli(ã), a critic V(h) on the core's output trained on the
+       imagined λ-returns, the actor by REINFORCE with the returns normalised by their 5-95 %
+       range (at least 1) and an entropy bonus.
+   The controller's objective is off for `warmup_steps` updates, while the model learns alone
+   (the critic learns from the start).
 
 The model never sees a gradient of the controller's objective, so it cannot "predict more
 reward" to please the controller (what scope `all` of the thesis's ascent does).
@@ -39,6 +41,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from cdrl.data.frames import pixel_bce
 from cdrl.data.stream import Chunk
 from cdrl.models import nets
 from cdrl.models.base import StepInput, Variant
@@ -172,7 +175,8 @@ def _act(variant: Variant, game, cfg: DreamConfig, state: DreamState, env_params
         probs = (1.0 - explore) * out["action"] + explore * 0.5
         next_action = jnp.where(games.is_first[:, None], 0.0, draw_buttons(k_buttons, probs))
         record = {"obs": obs, "next_obs": nxt, "action": action, "reward": reward, "is_first": is_first}
-        return (carry, games, next_action, key), (record, {**stats, "pred_reward": out["reward"]})
+        scores = {"pred_reward": out["reward"], "obs_bce": pixel_bce(out["logits"], nxt)}
+        return (carry, games, next_action, key), (record, {**stats, **scores})
 
     (carry, games, action, key), (chunk, stats) = jax.lax.scan(
         body, (state.model.carry, state.games, state.action, state.key), None, length=cfg.unroll)
@@ -192,23 +196,15 @@ def _store(replay: Replay, chunk: dict, carry0) -> Replay:
                           cursor=(replay.cursor + 1) % replay.obs.shape[0])
 
 
-def _model_updates(variant: Variant, cfg: DreamConfig, state: DreamState, hp: DreamHParams, key):
-    """`model_updates` guarded updates of the model, each on a chunk drawn from the buffer.
-    Returns (state, the last chunk and its start carry, metrics of the updates)."""
-    controller = variant.controller_mask(state.model.params)
-
-    def update(model: TrainState, k):
-        chunk, carry = state.replay.chunk(jax.random.randint(k, (), 0, state.replay.filled))
-        (loss, (_, terms, _)), grads = jax.value_and_grad(
-            lambda p: chunk_loss(variant, p, carry, hp.model, chunk), has_aux=True)(model.params)
-        grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, controller)  # the controller is not the model's
-        params, opt_state, guard = guarded_update(hp.model.opt, hp.model.diverge_threshold, model.params,
-                                                  model.opt_state, grads, loss)
-        return model.replace(params=params, opt_state=opt_state), ({"loss": loss, "terms": terms, **guard}, (chunk, carry))
-
-    model, (metrics, (chunks, carries)) = jax.lax.scan(update, state.model, jax.random.split(key, cfg.model_updates))
-    last = jax.tree.map(lambda x: x[-1], (chunks, carries))
-    return state.replace(model=model), last, metrics
+def _model_update(variant: Variant, model: TrainState, hp: DreamHParams, chunk: Chunk, carry):
+    """One guarded update of the model on `chunk` from `carry`, as offline training makes it;
+    the controller's parameters get no gradient (they are the controller's to learn)."""
+    (loss, (_, terms, _)), grads = jax.value_and_grad(
+        lambda p: chunk_loss(variant, p, carry, hp.model, chunk), has_aux=True)(model.params)
+    grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, variant.controller_mask(model.params))
+    params, opt_state, guard = guarded_update(hp.model.opt, hp.model.diverge_threshold, model.params,
+                                              model.opt_state, grads, loss)
+    return model.replace(params=params, opt_state=opt_state), {"loss": loss, "terms": terms, **guard}
 
 
 def _starts(variant: Variant, params, chunk: Chunk, carry):
@@ -311,19 +307,33 @@ def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, h
     step = state.model.step.astype(jnp.float32)
     explore = hp.explore * hp.explore_decay ** step
     carry0 = state.model.carry
-    key, k_model, k_ctrl = jax.random.split(state.key, 3)
+    key, k_model = jax.random.split(state.key)
     state, chunk, stats = _act(variant, game, cfg, state.replace(key=key), env_params, explore)
     state = state.replace(replay=_store(state.replay, chunk, jax.lax.stop_gradient(carry0)))
     scores = copy_scores(chunk["obs"], chunk["next_obs"])
-    state, (last_chunk, last_carry), model_m = _model_updates(variant, cfg, state, hp, k_model)
     on = (step >= hp.warmup_steps).astype(jnp.float32)
-    starts = _starts(variant, jax.lax.stop_gradient(state.model.params), last_chunk, last_carry)
-    state, ctrl_terms = _controller_update(variant, cfg, state, hp, starts, k_ctrl, on)
+
+    def learn(state: DreamState, k):
+        """One model update on a chunk drawn from the buffer, then one controller update from
+        that chunk's states."""
+        k_draw, k_imagine = jax.random.split(k)
+        replayed, carry = state.replay.chunk(jax.random.randint(k_draw, (), 0, state.replay.filled))
+        model, model_m = _model_update(variant, state.model, hp, replayed, carry)
+        starts = _starts(variant, jax.lax.stop_gradient(model.params), replayed, carry)
+        state, ctrl_terms = _controller_update(variant, cfg, state.replace(model=model), hp, starts, k_imagine, on)
+        return state, (model_m, ctrl_terms)
+
+    state, (model_m, ctrl_m) = jax.lax.scan(learn, state, jax.random.split(k_model, cfg.model_updates))
     state = state.replace(model=state.model.replace(step=state.model.step + 1))
     last = jax.tree.map(lambda x: x[-1], model_m)
+    ctrl_terms = jax.tree.map(jnp.mean, ctrl_m)
     metrics = {
         "loss": last["loss"],
-        "terms": {**last["terms"], **scores, **ctrl_terms, "pred_reward": jnp.mean(stats["pred_reward"])},
+        # The model's scores on the chunk it acted in, before learning from it (obs_bce beside
+        # copy_bce and target_entropy: the excess ratio of its predictions); the training
+        # terms of its last update (on a replayed chunk) as model_<term>.
+        "terms": {**{f"model_{k}": v for k, v in last["terms"].items()}, **scores, **ctrl_terms,
+                  "obs_bce": jnp.mean(stats["obs_bce"]), "pred_reward": jnp.mean(stats["pred_reward"])},
         "reward": jnp.mean(stats["reward"]),
         "episodes": jnp.sum(stats["done"]),
         "return_sum": jnp.sum(stats["finished_return"]),

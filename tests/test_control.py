@@ -1,0 +1,190 @@
+"""Control: the reference policies and the protocol every controller is measured with, and the
+learner whose controller trains in imagination (`cdrl.training.dream`): its pieces against
+equations and independent paths, and a reward any controller can learn."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import games
+from cdrl.evaluation import play
+from cdrl.models import make_variant
+from cdrl.models.arch import TINY
+from cdrl.training import dream
+from cdrl.training.optim import HParams, OptHParams
+from envs.policies import get_policy, privileged_policy
+
+SEEDS = np.arange(1000, 1016)
+
+
+def test_every_policy_plays_the_same_games():
+    """`compare_policies` plays a learned policy on the games it plays the references on: a
+    "learned" policy that is a copy of a reference gets exactly the reference's row."""
+    g, params = games.test_game()
+    never = get_policy("never_accelerate")
+    rows = play.compare_policies(g, params, {"copy": (never.init, never.step)}, 16, games.MAX_STEPS, seed=1000)
+    assert set(rows) == {"copy", *play.REFERENCES}
+    assert rows["copy"] == rows["never_accelerate"]
+    other = play.compare_policies(g, params, {"copy": (never.init, never.step)}, 16, games.MAX_STEPS, seed=2000,
+                                  references=False)
+    assert set(other) == {"copy"} and other["copy"] != rows["copy"]  # other seeds, other games
+
+
+def test_never_accelerate_and_privileged_never_press_accelerate():
+    g, params = games.test_game()
+    obs, state = g.reset(jax.random.PRNGKey(0), params)
+    never, priv = get_policy("never_accelerate"), privileged_policy(g)
+    for i in range(20):
+        a, _ = never.step(jax.random.PRNGKey(i), never.init(jax.random.PRNGKey(i)), obs)
+        b, _ = priv.step(jax.random.PRNGKey(i), priv.init(jax.random.PRNGKey(i)), obs, state, params)
+        assert float(a[2]) == 0.0 and float(b[2]) == 0.0
+        obs, state, *_ = g.step(jax.random.PRNGKey(i), state, a, params)
+    assert priv.privileged and not never.privileged
+
+
+def _one_pellet(g, params, ahead: float, right: float):
+    """A game state whose only pellet lies `ahead` pixels in front of the player's head and
+    `right` pixels to its right, with every opponent far away."""
+    _, state = g.reset(jax.random.PRNGKey(0), params)
+    hx, hy, h = float(state.x[0, 0]), float(state.y[0, 0]), float(state.heading[0])
+    px = hx + ahead * np.cos(h) - right * np.sin(h)
+    py = hy + ahead * np.sin(h) + right * np.cos(h)
+    cs, n = g.pellet_cell_size, g.grid
+    ix, iy = int(px % g.arena_size // cs), int(py % g.arena_size // cs)
+    value = np.zeros((n, n), np.float32)
+    value[iy, ix] = 0.5
+    dx = np.zeros((n, n), np.float32)
+    dy = np.zeros((n, n), np.float32)
+    dx[iy, ix], dy[iy, ix] = px % g.arena_size - ix * cs, py % g.arena_size - iy * cs
+    far = state.x.at[1:].set(hx + g.arena_size / 2), state.y.at[1:].set(hy + g.arena_size / 2)
+    return state.replace(pellet_value=jnp.asarray(value), pellet_dx=jnp.asarray(dx), pellet_dy=jnp.asarray(dy),
+                         x=far[0], y=far[1])
+
+
+@pytest.mark.parametrize("right, pressed", [(60.0, 0), (-60.0, 1), (0.0, None)])
+def test_the_privileged_policy_turns_to_the_pellet(right, pressed):
+    """A pellet 100 px ahead and 60 px to one side: the policy turns to that side (right is
+    button 0, left button 1); straight ahead it presses neither. Headings grow clockwise on
+    screen, y downwards: "right" of a heading h is the direction h + pi / 2."""
+    g, params = games.test_game()
+    state = _one_pellet(g, params, 100.0, right)
+    action, _ = privileged_policy(g).step(None, None, None, state, params)
+    expected = np.zeros(3)
+    if pressed is not None:
+        expected[pressed] = 1.0
+    np.testing.assert_array_equal(np.asarray(action), expected)
+
+
+def test_the_privileged_policy_outscores_random_turning():
+    g, params = games.test_game()
+    priv, never = privileged_policy(g), get_policy("never_accelerate")
+    p = play.summarize(*play.play(g, params, priv.init, priv.step, SEEDS, games.MAX_STEPS, privileged=True))
+    n = play.summarize(*play.play(g, params, never.init, never.step, SEEDS, games.MAX_STEPS))
+    assert p["ci95"][0] > n["ci95"][1], (p, n)
+
+
+def test_lambda_returns_against_the_recursion():
+    """R_k = r_k + gamma ((1 - lambda) V_{k+1} + lambda R_{k+1}), R_H = V_H, by a loop."""
+    rng = np.random.default_rng(0)
+    r, v = rng.normal(size=(6, 3)).astype(np.float32), rng.normal(size=(6, 3)).astype(np.float32)
+    gamma, lam = 0.9, 0.7
+    out = np.asarray(dream.lambda_returns(jnp.asarray(r), jnp.asarray(v), jnp.asarray(v[-1]), gamma, lam))
+    ref, nxt = np.zeros_like(r), v[-1]
+    for k in reversed(range(6)):
+        nxt = r[k] + gamma * ((1 - lam) * v[k] + lam * nxt)
+        ref[k] = nxt
+    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_closed_loop_minus_imagines_on_a_zero_error():
+    """FinalProposal's imagination fast path (no decoder, no encoder pass per step) equals its
+    ordinary step fed its own prediction, õ_t as o_t, so that o_t - õ_t = 0."""
+    v = make_variant("final_proposal", TINY)
+    params = v.init(jax.random.PRNGKey(0))
+    carry = v.init_carry(3)
+    x = jnp.asarray(np.random.default_rng(1).uniform(size=(3, 16, 16)), jnp.float32)
+    a0 = jnp.full((3, 3), 0.5)
+    from cdrl.models.base import StepInput
+    carry, _ = v.step(params, carry, StepInput(obs=x, action=a0, is_first=jnp.ones(3, bool)))
+    action = jnp.asarray([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.3, 0.3, 0.9]])
+    fast_carry, fast = v.imagine_step(params, carry, None, action)
+    slow_carry, slow = v.step(params, carry, StepInput(obs=carry["pred_obs"], action=action,
+                                                       is_first=jnp.zeros(3, bool)))
+    for k in ("action", "reward", "pred_code"):
+        np.testing.assert_allclose(fast[k], slow[k], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(fast_carry["lstm"].h, slow_carry["lstm"].h, rtol=1e-5, atol=1e-6)
+    assert "logits" not in fast
+
+
+def test_the_replay_buffer_is_a_ring():
+    v = make_variant("final_proposal", TINY)
+    g, params = games.test_game()
+    cfg = dream.DreamConfig(num_envs=2, unroll=3, replay=2, model_updates=1, horizon=2)
+    hp = dream.DreamHParams.create(HParams.create(v))
+    replay = dream.init_dream(v, g, params, cfg, jax.random.PRNGKey(0), hp).replay
+    carry = v.init_carry(2)
+    for i in range(3):
+        chunk = {"obs": jnp.full((3, 2, 16, 16), i / 10), "next_obs": jnp.full((3, 2, 16, 16), i / 10 + 0.05),
+                 "action": jnp.full((3, 2, 3), float(i)), "reward": jnp.full((3, 2), float(i)),
+                 "is_first": jnp.zeros((3, 2), bool)}
+        replay = dream._store(replay, chunk, carry)
+    assert int(replay.filled) == 2 and int(replay.cursor) == 1
+    np.testing.assert_array_equal(replay.reward[:, 0, 0], [2.0, 1.0])  # chunk 2 overwrote chunk 0
+    # frames stored as uint8: o_0 .. o_{T-1} then the last o_T
+    assert replay.obs.dtype == jnp.uint8
+    np.testing.assert_array_equal(replay.obs[0, :, 0, 0, 0], [51, 51, 51, 64])
+
+
+@pytest.fixture(scope="module")
+def learner():
+    g, params = games.left_bonus_game()
+    v = make_variant("final_proposal", TINY)
+    cfg = dream.DreamConfig(num_envs=8, unroll=8, replay=16, model_updates=2, horizon=5, controller="critic")
+    hp = dream.DreamHParams.create(HParams.create(v, opt=OptHParams.create(lr=0.1, momentum=0.9)), warmup_steps=5,
+                                   ctrl_opt=OptHParams.create("adam", lr=1e-3))
+    return g, params, v, cfg, hp, dream.init_dream(v, g, params, cfg, jax.random.PRNGKey(0), hp)
+
+
+def test_controller_updates_move_the_controller_only(learner):
+    """The controller's objective changes the controller (the FC's action-code columns and
+    D_a) and nothing else; the model's updates leave the controller as it was."""
+    g, params, v, cfg, hp, state = learner
+    state = jax.tree.map(jnp.copy, state)
+    mask = v.controller_mask(state.model.params)
+    key = jax.random.PRNGKey(3)
+    ctrl_only, _ = dream._controller_update(v, cfg, state, hp, _starts(v, state), key, 1.0)
+    moved = jax.tree.map(lambda a, b: np.asarray(a != b), ctrl_only.model.params, state.model.params)
+    assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
+    assert not any(np.any(m & (k == 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
+    chunk, carry = _filled(state).chunk(0)
+    model_only, _ = dream._model_update(v, state.model, hp, chunk, carry)
+    for new, old, k in zip(jax.tree.leaves(model_only.params), jax.tree.leaves(state.model.params),
+                           jax.tree.leaves(mask)):
+        np.testing.assert_array_equal(np.asarray(new)[np.asarray(k) > 0], np.asarray(old)[np.asarray(k) > 0])
+
+
+def _filled(state):
+    """The buffer with one chunk of the first frames in it."""
+    s = state.replay
+    return s.replace(obs=s.obs.at[0].set(jnp.round(state.games.obs[None] * 255).astype(jnp.uint8)),
+                     filled=jnp.ones((), jnp.int32))
+
+
+def _starts(v, state):
+    chunk, carry = _filled(state).chunk(0)
+    return dream._starts(v, state.model.params, chunk, carry)
+
+
+def test_the_controller_learns_a_trivially_learnable_reward_in_imagination(learner):
+    """With a bonus for turning left, the actor-critic in imagination teaches the controller to
+    turn left: its noise-free return on held-out seeds clearly beats the uniform-random policy's."""
+    g, params, v, cfg, hp, state = learner
+    state = jax.tree.map(jnp.copy, state)
+    for _ in range(60):
+        state, metrics = dream.dream_step(v, g, cfg, state, hp, params)
+    assert float(metrics["controller_on"]) == 1.0 and not bool(metrics["diverged"])
+    learned = play.summarize(*play.play(g, params, *play.controller_policy(v, state.model.params), SEEDS,
+                                        games.MAX_STEPS))
+    uniform = get_policy("uniform")
+    random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
+    assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
