@@ -1,45 +1,49 @@
-"""The controller experiment: train controller variants online against the built-in game and
-compare their noise-free play with the thesis's two data policies on the same held-out seeds.
+"""The controller experiment: model-based controllers, PPO and the reference policies on the same
+held-out games of the built-in game.
 
-Configurations (each `cdrl train` with the same budget), each trained once per seed (`--seeds`,
-default 0 1 2; a seed sets the initialisation, the exploration noise and the training games):
-  final_proposal, scope controller  (reward ascent moves only the controller D_a)
-  final_proposal, scope all         (the thesis's literal wording)
-  reward_prediction, scope controller (open loop on observations: does closed loop − help?)
-  action_loop                        (no reward head: no ascent; BCE only)
+Every configuration is a `cdrl train` run (`cdrl.runs.train.train_run`), trained once per seed
+(`--seeds`; a seed sets the initialisation, the exploration and the training games), scored
+`--evals` times during training and at the end on the same held-out games (seeds 10000,
+10001, ...; `cdrl.evaluation.play.compare_policies`), noise-free: the controller executes ã,
+PPO its greedy buttons. The reference policies (uniform random, random turning that never
+accelerates, the thesis's behaviour switching, the privileged scripted policy) play the same
+games once: they do not learn.
 
-Every run is evaluated on the same held-out games (seeds 10000, 10001, ...), as are the
-uniform-random and behaviour-switching policies (identical for every run: they do not learn).
+Configurations (`CONFIGS`; `--configs` picks some), each at the same number of game frames
+(`steps` x B x T) unless named otherwise:
+  critic        final_proposal, actor-critic in imagination (`--controller critic`)
+  imagine       final_proposal, reward ascent through imagined rollouts (`--controller imagine`)
+  rollout       final_proposal, the thesis's reward ascent through the real chunk, scope controller
+  rollout-all   the same, scope all (the thesis's literal wording: may the model hallucinate reward?)
+  critic-open   reward_prediction (open loop on observations), actor-critic in imagination:
+                against `critic`, does closed loop − help?
+  ppo           PPO at the same game frames
+  ppo-10x       PPO at ten times the game frames
 
-Reported per configuration (`runs[name]`):
-  * `seeds[seed]`: that run's `controller` row (`mean_return` over the held-out games, `ci95`:
-    the within-run 95 % CI over those games, Student t, `episodes`, `mean_length`) and the mean
-    predicted vs real reward per step over the last quarter of training (is reward
-    hallucinated?), the final observation BCE, the first / last training returns and the run's
-    wall time (`wall_s`, compiles included; later seeds reuse the compiled programs);
-  * `per_seed_mean_return`: the per-seed mean returns, in `seeds_order`;
-  * `mean_return`, `std_across_seeds` (ddof 1) and `ci95_across_seeds`: the 95 % CI of the mean
-    over seeds, Student t with n - 1 degrees of freedom (null with one seed; with 3 seeds t is
-    4.30, so the interval is wide: it is the honest one);
-  * the same three for the predicted and the real reward per step (`predicted_reward_per_step`,
-    `real_reward_per_step`: {per_seed, mean, std_across_seeds, ci95_across_seeds}).
-`baselines` holds the two data policies' rows (a CI over the held-out games; there is no seed to
-vary), `budget` the budget and seeds, `load_avg_start` / `load_avg_end` the 1-minute load.
+Reported per configuration (`configs[name]`): the recipe's options, the game frames of a run,
+per seed the final `return` (mean over the held-out games, with their 95 % CI), `length` (mean
+survival in steps), the learning curve (held-out return after each evaluation's game frames)
+and, for models with a reward head, how well it predicts the reward of its own play on the
+held-out games (`cdrl.evaluation.play.reward_fit`: correlation and R²); across seeds the
+mean, standard deviation and 95 % CI (Student t, n - 1 degrees of freedom) of the final return
+and survival. `references` holds the reference policies' rows. `--figure FILE` draws the
+learning curves (mean over seeds with the 95 % CI band) against the references.
 
-Prints a table and ends with one JSON line (`--out FILE` also writes the result to FILE).
-Budgets: `--full` is the budget whose output is committed as benchmarks/results/controller.json;
-the default is a quick check on the small preset; `--quick` is a smoke test (tiny preset, a few
-updates and games; says only that the script runs).
+Prints a table and ends with one JSON line (`--out FILE` also writes it there).
+Budgets: `--full` is the committed one (about 5 hours on 2 cores):
 
-    .venv/bin/python benchmarks/controller.py --full --out benchmarks/results/controller.json
-    .venv/bin/python benchmarks/controller.py --quick --seeds 0 1
+    .venv/bin/python benchmarks/controller.py --full --out benchmarks/results/controller.json \\
+        --figure benchmarks/results/controller.png
+
+`--quick` is a smoke test (tiny preset, a few updates, says only that the script runs).
+Runs are kept under `--work-dir` and a finished run is not trained again, so a killed
+experiment continues where it stopped; `--out` holds the finished configurations after each
+one (`"partial": true` until the last).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import shutil
 import sys
 import tempfile
 import time
@@ -48,143 +52,170 @@ from pathlib import Path
 import numpy as np
 import scipy.stats
 
-from cdrl.runs.config import RunConfig
-from cdrl.runs.train import train_run
+from common import emit, warn_if_busy
 
-RUNS = [
-    ("final_proposal", "controller"),
-    ("final_proposal", "all"),
-    ("reward_prediction", "controller"),
-    ("action_loop", "controller"),
-]
+# name -> options of `cdrl train` (RunConfig fields) besides the budget's
+CONFIGS: dict[str, dict] = {
+    "critic": {"variant": "final_proposal", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
+    "imagine": {"variant": "final_proposal", "controller": "imagine", "optimizer": "adam", "lr": 1e-3},
+    "rollout": {"variant": "final_proposal", "controller": "rollout", "scope": "controller"},
+    "rollout-all": {"variant": "final_proposal", "controller": "rollout", "scope": "all"},
+    "critic-open": {"variant": "reward_prediction", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
+    "ppo": {"variant": "ppo"},
+    "ppo-10x": {"variant": "ppo", "frames_factor": 10},
+}
+# Model-based runs collect B 8 x T 16 game frames per update, PPO B 16 x T 32.
+BUDGETS = {
+    "full": {"preset": "small", "frames": 38_400, "eval_episodes": 64, "episode_steps": 200, "evals": 4,
+             "warmup_steps": 50},
+    "default": {"preset": "small", "frames": 6_400, "eval_episodes": 16, "episode_steps": 200, "evals": 2,
+                "warmup_steps": 10},
+    "quick": {"preset": "tiny", "frames": 256, "eval_episodes": 3, "episode_steps": 20, "evals": 1,
+              "warmup_steps": 1},
+}
+SHAPES = {"ppo": (16, 32), "model": (8, 16)}
 
 
-def reward_summary(run_dir: Path) -> dict:
-    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    tail = records[-max(1, len(records) // 4):]
-    returns = [r["mean_return"] for r in records if r["mean_return"] is not None]
-    return {
-        "real_reward_per_step": float(np.mean([r["reward"] for r in tail])),
-        "predicted_reward_per_step": float(np.mean([r["terms"].get("pred_reward", 0.0) for r in tail])),
-        "final_obs_bce": float(np.mean([r["terms"]["obs_bce"] for r in tail])),
-        "training_returns_first_last": [returns[0], returns[-1]] if returns else None,
-    }
-
-
-def across_seeds(values: list[float]) -> dict:
-    """Mean, standard deviation (ddof 1) and 95 % CI (Student t, n - 1 degrees of freedom) of
-    per-seed values; the spread and CI are null for a single seed."""
+def across(values: list[float]) -> dict:
+    """Mean, standard deviation (ddof 1) and 95 % CI (Student t, n - 1 dof) over seeds."""
     n = len(values)
     mean = float(np.mean(values))
     if n < 2:
-        return {"per_seed": list(values), "mean": mean, "std_across_seeds": None, "ci95_across_seeds": None}
+        return {"mean": mean, "std": None, "ci95": None, "per_seed": list(values)}
     std = float(np.std(values, ddof=1))
     half = float(scipy.stats.t.ppf(0.975, n - 1) * std / np.sqrt(n))
-    return {"per_seed": list(values), "mean": mean, "std_across_seeds": std,
-            "ci95_across_seeds": [mean - half, mean + half]}
+    return {"mean": mean, "std": std, "ci95": [mean - half, mean + half], "per_seed": list(values)}
 
 
-BUDGETS = {
-    "full": dict(preset="small", steps=150, batch=8, unroll=16, eval_episodes=24, episode_steps=200),
-    "default": dict(preset="small", steps=20, batch=4, unroll=8, eval_episodes=8, episode_steps=60),
-    "quick": dict(preset="tiny", steps=4, batch=2, unroll=4, eval_episodes=3, episode_steps=20),
-}
+def run_config(name: str, options: dict, budget: dict, seed: int, work: Path) -> dict:
+    """Train (or read back, when finished) one seed of a configuration; its figures."""
+    from cdrl.evaluation.play import reward_fit
+    from cdrl.models import make_variant
+    from cdrl.runs.config import RunConfig
+    from cdrl.runs.online import learner, model_params
+    from cdrl.runs.rundir import RunDir
+    from cdrl.runs.train import train_run
+
+    options = dict(options)
+    factor = options.pop("frames_factor", 1)
+    batch, unroll = SHAPES["ppo" if options["variant"] == "ppo" else "model"]
+    if budget["preset"] == "tiny":
+        batch, unroll = 4, 4
+    steps = max(1, budget["frames"] * factor // (batch * unroll))
+    cfg = RunConfig(preset=budget["preset"], batch=batch, unroll=unroll, steps=steps, seed=seed,
+                    eval_every=max(1, steps // budget["evals"]), checkpoint_every=max(1, steps // budget["evals"]),
+                    eval_episodes=budget["eval_episodes"], episode_steps=budget["episode_steps"],
+                    warmup_steps=budget["warmup_steps"], tensorboard=False, **options)
+    run_dir = work / name / f"seed{seed}"
+    run = RunDir(run_dir)
+    t0 = time.perf_counter()
+    finished = run.has_run() and any(r["step"] == steps for r in run.evals.read())
+    if run.has_run() and not finished:  # a killed experiment: continue the run
+        train_run(None, run_dir, resume=True)
+    elif not finished:
+        train_run(cfg, run_dir)
+    wall = time.perf_counter() - t0
+    evals = [r for r in run.evals.read() if r.get("split") == "play"]
+    learned = "ppo" if cfg.variant == "ppo" else "controller"
+    final = evals[-1]["policies"]
+    out = {"return": final[learned]["mean_return"], "ci95_over_games": final[learned]["ci95"],
+           "length": final[learned]["mean_length"], "wall_s": wall, "steps": steps,
+           "frames": steps * batch * unroll,
+           "curve": [[r["step"] * batch * unroll, r["policies"][learned]["mean_return"]] for r in evals],
+           "references": {k: v for k, v in final.items() if k != learned}}
+    cfg = run.read_config()
+    if cfg.variant != "ppo" and make_variant(cfg.variant, cfg.arch).predicts_reward:
+        import jax
+
+        setup, fresh, _ = learner(cfg)
+        state, _, _ = run.read_checkpoints().restore_latest_good(jax.eval_shape(fresh))
+        variant, game, env_params = setup[0], setup[1], setup[2]
+        params = model_params(state)
+        seeds = np.arange(10_000, 10_000 + budget["eval_episodes"])
+        out["reward_fit"] = reward_fit(variant, params, game, env_params, seeds, budget["episode_steps"])
+    return out
 
 
-def _fmt_ci(ci) -> str:
-    return f"[{'-':>8s}, {'-':>8s}]" if ci is None else f"[{ci[0]:8.3f}, {ci[1]:8.3f}]"
+def figure(results: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for name, r in results["configs"].items():
+        curves = [s["curve"] for s in r["seeds"].values()]
+        n = min(len(c) for c in curves)
+        frames = np.array([c[i][0] for i in range(n) for c in curves[:1]])
+        values = np.array([[c[i][1] for i in range(n)] for c in curves])
+        mean = values.mean(axis=0)
+        ax.plot(frames, mean, marker="o", label=f"{name} ({len(curves)} seeds)")
+        if len(curves) > 1:
+            half = scipy.stats.t.ppf(0.975, len(curves) - 1) * values.std(axis=0, ddof=1) / np.sqrt(len(curves))
+            ax.fill_between(frames, mean - half, mean + half, alpha=0.2)
+    for name, row in results["references"].items():
+        ax.axhline(row["mean_return"], linestyle="--", linewidth=1, color="grey")
+        ax.annotate(name, (ax.get_xlim()[0], row["mean_return"]), fontsize=8, va="bottom")
+    ax.set_xscale("log")
+    ax.set_xlabel("game frames of training")
+    ax.set_ylabel(f"held-out return ({results['budget']['eval_episodes']} games, mean over seeds, 95 % CI)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     size = parser.add_mutually_exclusive_group()
-    size.add_argument("--full", action="store_true", help="the committed budget (default: a quick check)")
-    size.add_argument("--quick", action="store_true",
-                      help="a smoke test: tiny preset, 4 updates of 2 games x 4 steps, 3 held-out games of 20 steps")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
-                        help="seeds trained per configuration (default: 0 1 2)")
-    parser.add_argument("--out", default=None, help="also write the JSON result to this file")
+    size.add_argument("--full", action="store_true", help="the committed budget (default: a short check)")
+    size.add_argument("--quick", action="store_true", help="a smoke test on the tiny preset")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds (default: 0-4)")
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
+                        help="configurations to run (default: all)")
     parser.add_argument("--work-dir", default=None, help="where the runs go (default: a temporary directory)")
+    parser.add_argument("--out", default=None, help="also write the JSON result to this file")
+    parser.add_argument("--figure", default=None, help="draw the learning curves into this PNG file")
     args = parser.parse_args(argv)
-    seeds = list(dict.fromkeys(args.seeds))
-    # Every seed of a configuration runs the same programs (the seed is a traced key): a persistent
-    # compilation cache compiles each once (nothing here is timed). JAX_COMPILATION_CACHE_DIR wins.
     import jax
 
     jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR")
                       or tempfile.mkdtemp(prefix="cdrl-controller-xla-"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    load_avg_start = os.getloadavg()[0]
-
     budget_name = "full" if args.full else "quick" if args.quick else "default"
-    budget = dict(BUDGETS[budget_name])
-    arch_preset = budget.pop("preset")
-    warmup = max(1, budget["steps"] // 4)
+    budget = BUDGETS[budget_name]
     work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
-    results = {"budget": {**budget, "name": budget_name, "preset": arch_preset, "lr": 0.1, "ascent": 0.1,
-                          "warmup_steps": warmup, "noise_std": 0.3, "noise_decay": 0.995, "seeds": seeds},
-               "seeds_order": seeds, "load_avg_start": load_avg_start, "runs": {}}
-    baselines, baselines_differ = None, False
-    for variant, scope in RUNS:
-        name = f"{variant}-{scope}" if variant != "action_loop" else variant
-        per_seed = {}
-        for seed in seeds:
-            run_dir = work / name / f"seed{seed}"
-            if run_dir.exists():
-                shutil.rmtree(run_dir)
-            run_dir.parent.mkdir(parents=True, exist_ok=True)
-            cfg = RunConfig(variant=variant, preset=arch_preset, scope=scope, ascent=0.1, warmup_steps=warmup,
-                            noise_std=0.3, noise_decay=0.995, lr=0.1, seed=seed, eval_every=0,
-                            checkpoint_every=budget["steps"], **budget)
-            t0 = time.perf_counter()
-            summary = train_run(cfg, run_dir)
-            wall_s = time.perf_counter() - t0
-            policies = summary["policies"]
-            per_seed[str(seed)] = {"controller": policies["controller"], **reward_summary(run_dir), "wall_s": wall_s}
-            rows = {k: policies[k] for k in ("uniform", "behaviour")}
-            if baselines is None:
-                baselines = rows
-            elif rows != baselines:
-                baselines_differ = True
-            print(f"{name} seed {seed}: {json.dumps(per_seed[str(seed)])}", file=sys.stderr, flush=True)
-        returns = [per_seed[str(s)]["controller"]["mean_return"] for s in seeds]
-        ret = across_seeds(returns)
-        results["runs"][name] = {
-            "variant": variant, "scope": scope, "seeds": per_seed,
-            "per_seed_mean_return": returns, "mean_return": ret["mean"],
-            "std_across_seeds": ret["std_across_seeds"], "ci95_across_seeds": ret["ci95_across_seeds"],
-            "predicted_reward_per_step": across_seeds([per_seed[str(s)]["predicted_reward_per_step"] for s in seeds]),
-            "real_reward_per_step": across_seeds([per_seed[str(s)]["real_reward_per_step"] for s in seeds]),
-        }
-    results["baselines"] = baselines
-    if baselines_differ:  # they should not: same games, same fixed policies
-        results["warning"] = "the baseline policies' returns differed between runs; `baselines` is the first run's"
-        print("warning: " + results["warning"], file=sys.stderr)
-
-    n = len(seeds)
-    lines = [f"mean return over {budget['eval_episodes']} held-out games per run; across {n} seed(s) "
-             f"{seeds}: mean, 95% CI (Student t, {n - 1} dof); per seed: mean [within-run 95% CI over the games]",
-             f"{'policy':36s} {'mean':>8s} {'95% CI across seeds':>20s}   per seed"]
-    for name, r in results["runs"].items():
-        per = "; ".join(f"{s}: {c['controller']['mean_return']:.2f} [{c['controller']['ci95'][0]:.2f}, "
-                        f"{c['controller']['ci95'][1]:.2f}]" for s, c in r["seeds"].items())
-        lines.append(f"{'controller ' + name:36s} {r['mean_return']:8.3f} {_fmt_ci(r['ci95_across_seeds'])}   {per}")
-    for name, c in baselines.items():
-        lines.append(f"{name:36s} {c['mean_return']:8.3f} {'(no seed to vary)':>20s}   "
-                     f"CI over the games [{c['ci95'][0]:.2f}, {c['ci95'][1]:.2f}]")
-    lines.append("predicted / real reward per step, last quarter of training (mean over seeds; per seed):")
-    for name, r in results["runs"].items():
-        p, q = r["predicted_reward_per_step"], r["real_reward_per_step"]
-        lines.append(f"  {name:34s} {p['mean']:8.4f} / {q['mean']:8.4f}   "
-                     + "; ".join(f"{a:.4f} / {b:.4f}" for a, b in zip(p["per_seed"], q["per_seed"])))
-    results["load_avg_end"] = os.getloadavg()[0]
-    lines.append(f"load average: {load_avg_start:.2f} at the start, {results['load_avg_end']:.2f} at the end")
-    print("\n".join(lines))
-    line = json.dumps(results)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
-    print(line)
+    load_start = os.getloadavg()[0]
+    results = {"budget": {"name": budget_name, **budget, "seeds": args.seeds, "level": "thesis"}, "configs": {},
+               "references": None}
+    for name in args.configs:
+        seeds = {}
+        for seed in args.seeds:
+            seeds[str(seed)] = run_config(name, CONFIGS[name], budget, seed, work)
+            print(f"{name} seed {seed}: return {seeds[str(seed)]['return']:.3f}", file=sys.stderr, flush=True)
+        results["references"] = results["references"] or seeds[str(args.seeds[0])]["references"]
+        row = {"options": CONFIGS[name], "frames": seeds[str(args.seeds[0])]["frames"], "seeds": seeds,
+               "return": across([s["return"] for s in seeds.values()]),
+               "length": across([s["length"] for s in seeds.values()])}
+        fits = [s["reward_fit"] for s in seeds.values() if "reward_fit" in s]
+        if fits:
+            row["reward_fit"] = {k: across([f[k] for f in fits]) for k in ("correlation", "r2")}
+        results["configs"][name] = row
+        if args.out:  # what is done so far, should the experiment be stopped
+            emit({**results, "partial": True}, args.out)
+    lines = [f"held-out return over {budget['eval_episodes']} games, across seeds {args.seeds}: "
+             "mean [95% CI, Student t]; survival in steps",
+             f"{'policy':14s} {'frames':>9s} {'mean':>8s} {'95% CI across seeds':>22s} {'survival':>9s}   per seed"]
+    for name, r in results["configs"].items():
+        ci = r["return"]["ci95"] or [float("nan")] * 2
+        lines.append(f"{name:14s} {r['frames']:9d} {r['return']['mean']:8.3f} [{ci[0]:8.3f}, {ci[1]:8.3f}] "
+                     f"{r['length']['mean']:9.1f}   " + ", ".join(f"{v:.2f}" for v in r["return"]["per_seed"]))
+    for name, row in results["references"].items():
+        lines.append(f"{name:14s} {'-':>9s} {row['mean_return']:8.3f} [{row['ci95'][0]:8.3f}, {row['ci95'][1]:8.3f}] "
+                     f"{row['mean_length']:9.1f}   (95% CI over the games; no seed to vary)")
+    print("\n".join(lines), file=sys.stderr)
+    warn_if_busy(results, load_start, os.getloadavg()[0])
+    if args.figure:
+        figure(results, args.figure)
+    emit(results, args.out)
     return 0
 
 

@@ -157,8 +157,8 @@ def test_controller_updates_move_the_controller_only(learner):
     assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
     assert not any(np.any(m & (k == 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
     chunk, carry = _filled(state).chunk(0)
-    model_only, _ = dream._model_update(v, state.model, hp, chunk, carry)
-    for new, old, k in zip(jax.tree.leaves(model_only.params), jax.tree.leaves(state.model.params),
+    model_only, _ = dream._model_update(v, state, hp, chunk, carry)
+    for new, old, k in zip(jax.tree.leaves(model_only.model.params), jax.tree.leaves(state.model.params),
                            jax.tree.leaves(mask)):
         np.testing.assert_array_equal(np.asarray(new)[np.asarray(k) > 0], np.asarray(old)[np.asarray(k) > 0])
 
@@ -188,3 +188,36 @@ def test_the_controller_learns_a_trivially_learnable_reward_in_imagination(learn
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
+
+
+RUN = ["--preset", "tiny", "--batch", "4", "--unroll", "4", "--episode-steps", "30", "--eval-every", "0",
+       "--eval-episodes", "3", "--checkpoint-every", "2", "--no-tensorboard"]
+
+
+def _losses(run_dir):
+    import json
+
+    return [json.loads(line)["loss"] for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.parametrize("learner", [["--variant", "ppo"],
+                                     ["--variant", "final_proposal", "--controller", "critic", "--replay", "4",
+                                      "--horizon", "3", "--model-updates", "2", "--warmup-steps", "1"]],
+                         ids=["ppo", "critic"])
+def test_learners_are_runs_that_resume_exactly(tmp_path, capsys, learner):
+    """PPO and the controller trained in imagination are runs like any other: config, metrics,
+    checkpoints; a run stopped at a checkpoint and resumed gives the straight run's losses, and
+    `cdrl eval --policy` plays its policy against the references on the same games."""
+    from cdrl.cli import main
+
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    assert main(["train", "--run-dir", str(straight), *learner, *RUN, "--steps", "4"]) == 0
+    assert main(["train", "--run-dir", str(resumed), *learner, *RUN, "--steps", "2"]) == 0
+    assert main(["train", "--resume", str(resumed), "--steps", "4"]) == 0
+    a, b = _losses(straight), _losses(resumed)
+    assert len(a) == len(b) == 4 and max(abs(x - y) for x, y in zip(a, b)) <= 1e-6, (a, b)
+    capsys.readouterr()
+    assert main(["eval", "--policy", str(straight), "--episodes", "3"]) == 0
+    out = capsys.readouterr().out
+    name = "ppo" if "ppo" in learner else "controller"
+    assert all(row in out for row in (name, *play.REFERENCES))

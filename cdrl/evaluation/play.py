@@ -107,6 +107,46 @@ def compare_policies(game, env_params, learned: dict[str, tuple[Callable, Callab
     return rows
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1, 5))
+def _reward_trace(variant: Variant, game, params, env_params, keys, max_steps: int):
+    """Per game and step `[N, T]`: the controller's predicted reward r̃_{t+1}, the real r_{t+1},
+    and whether the game was still on."""
+    init, step = controller_policy(variant, params)
+
+    def one_game(key):
+        k_reset, k_run = jax.random.split(key)
+        obs, env_state = game.reset(k_reset, env_params)
+
+        def body(c, _):
+            env_state, obs, pstate, key, alive = c
+            key, k_env = jax.random.split(key)
+            x = StepInput(obs=resize_obs(obs, variant.arch.image_size)[None], action=pstate["action"],
+                          is_first=pstate["is_first"])
+            carry, out = variant.step(params, pstate["carry"], x)
+            pstate = {"carry": carry, "action": out["action"], "is_first": jnp.zeros((1,), bool)}
+            obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, x.action[0], env_params)
+            return (env_state, obs, pstate, key, alive & ~(term | trunc)), (out["reward"][0], reward, alive)
+
+        c0 = (env_state, obs, init(None), k_run, jnp.array(True))
+        return jax.lax.scan(body, c0, None, length=max_steps)[1]
+
+    return jax.vmap(one_game)(keys)
+
+
+def reward_fit(variant: Variant, params, game, env_params, seeds, max_steps: int) -> dict[str, float]:
+    """How well a controller variant's reward head predicts the reward its own noise-free play
+    earns on the held-out games `seeds`: the correlation of r̃_{t+1} with r_{t+1} over every
+    step played, and R² = 1 - MSE / variance of r (0: no better than the mean reward)."""
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+    pred, real, alive = (np.asarray(x) for x in _reward_trace(variant, game, params, env_params, keys, int(max_steps)))
+    pred, real = pred[alive].astype(np.float64), real[alive].astype(np.float64)
+    var = float(np.var(real))
+    corr = float(np.corrcoef(pred, real)[0, 1]) if np.std(pred) > 0 and var > 0 else float("nan")
+    r2 = 1.0 - float(np.mean(np.square(pred - real))) / var if var > 0 else float("nan")
+    return {"correlation": corr, "r2": r2, "steps": int(alive.sum()), "mean_predicted": float(pred.mean()),
+            "mean_real": float(real.mean())}
+
+
 def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:
     """Mean return with a 95 % confidence interval (Student t), mean episode length."""
     n = len(returns)

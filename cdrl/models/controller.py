@@ -64,19 +64,29 @@ class _Heads:
             out["reward"] = nets.mlp(params["reward_head"], parts[2], final_selu=False)[..., 0]
         return out
 
+    def _head_mask(self, params, head: int, group: str) -> dict:
+        """1 on the FC layer's columns of code `head` (0: observation, 1: action, 2: reward) and
+        on the parameters of `group`, 0 elsewhere (a pytree like `params`)."""
+        sizes = self.head_sizes()
+        cut = list(itertools.accumulate((0,) + sizes))
+        cols = (jnp.arange(cut[-1]) >= cut[head]) & (jnp.arange(cut[-1]) < cut[head + 1])
+        mask = jax.tree.map(jnp.zeros_like, params)
+        fc = params["fc"]["dense0"]
+        mask["fc"]["dense0"] = {"kernel": jnp.broadcast_to(cols, fc["kernel"].shape).astype(jnp.float32),
+                                "bias": cols.astype(jnp.float32)}
+        mask[group] = jax.tree.map(jnp.ones_like, params[group])
+        return mask
+
     def controller_mask(self, params) -> dict:
         """1 where a parameter belongs to the controller, the map from the core's output h to
         ã: the FC layer's action-code columns and D_a; 0 elsewhere (a pytree like `params`).
         What the controller's own updates (imagination, actor-critic) may change."""
-        a = self.arch
-        mask = jax.tree.map(jnp.zeros_like, params)
-        cols = (jnp.arange(sum(self.head_sizes())) >= a.obs_code) & (jnp.arange(sum(self.head_sizes()))
-                                                                     < a.obs_code + a.action_code)
-        fc = params["fc"]["dense0"]
-        mask["fc"]["dense0"] = {"kernel": jnp.broadcast_to(cols, fc["kernel"].shape).astype(jnp.float32),
-                                "bias": cols.astype(jnp.float32)}
-        mask["act_dec"] = jax.tree.map(jnp.ones_like, params["act_dec"])
-        return mask
+        return self._head_mask(params, 1, "act_dec")
+
+    def reward_mask(self, params) -> dict:
+        """1 on the reward head's own parameters (the FC layer's reward-code columns and D_r),
+        0 elsewhere; for variants that predict reward."""
+        return self._head_mask(params, 2, "reward_head")
 
     def features(self, carry) -> jax.Array:
         """h, the recurrent core's output, `[B, lstm_size]` (what the critic of an actor-critic reads)."""

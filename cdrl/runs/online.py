@@ -33,8 +33,8 @@ from cdrl.runs.sources import run_game, with_obs_norm
 from cdrl.runs.writer import run_writer
 from cdrl.training.loop import Job, Plan, host_loop
 from cdrl.training.monitor import group_names
-from cdrl.training.dream import DreamConfig, DreamHParams, dream_step, init_dream
-from cdrl.training.online import OnlineConfig, OnlineHParams, init_online, online_step
+from cdrl.training.dream import DreamConfig, DreamHParams, DreamState, dream_step, init_dream
+from cdrl.training.online import OnlineConfig, OnlineHParams, OnlineState, init_online, online_step
 from cdrl.training.optim import HParams, OptHParams
 from cdrl.training.ppo import PPOConfig, PPOHParams, init_ppo, ppo_policy, ppo_step
 
@@ -129,7 +129,7 @@ def online_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJ
     variant, game, env_params, ocfg, hp = setup
     program = functools.partial(_online_program, variant, game, ocfg, hp, env_params)
     return GameJob(cfg, program, ckpts, group_names(state.train.params), "controller",
-                   lambda s: controller_policy(variant, s.train.params), game, env_params,
+                   lambda s: controller_policy(variant, model_params(s)), game, env_params,
                    extras=("noise_std", "ascent_on"))
 
 
@@ -157,7 +157,7 @@ def dream_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJo
     variant, game, env_params, dcfg, hp = setup
     program = functools.partial(_dream_program, variant, game, dcfg, hp, env_params)
     return GameJob(cfg, program, ckpts, group_names(state.model.params), "controller",
-                   lambda s: controller_policy(variant, s.model.params), game, env_params,
+                   lambda s: controller_policy(variant, model_params(s)), game, env_params,
                    extras=("explore", "controller_on"))
 
 
@@ -178,6 +178,15 @@ def learner(cfg: RunConfig):
     setup = dream_setup(cfg)
     variant, game, env_params, dcfg, hp = setup
     return setup, lambda: init_dream(variant, game, env_params, dcfg, jax.random.PRNGKey(cfg.seed), hp), dream_job
+
+
+def model_params(state):
+    """The world model's parameters (the controller's included) of an online program's state."""
+    if isinstance(state, DreamState):
+        return state.model.params
+    if isinstance(state, OnlineState):
+        return state.train.params
+    raise TypeError(f"{type(state).__name__} holds no world model")
 
 
 def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:

@@ -78,7 +78,7 @@ class DreamHParams:
     """Traced numbers (a `vmap` sweep can vary any of them)."""
 
     model: HParams  # the model's optimiser, loss weights and divergence threshold
-    ctrl_opt: OptHParams  # the controller's (and critic's) optimiser
+    ctrl_opt: OptHParams  # the heads' optimiser: the controller's, the critic's and the reward head's
     ascent: jax.Array  # weight of the controller's objective (0: the model learns alone)
     explore: jax.Array  # ε at update 0: the chance a button is drawn uniformly
     explore_decay: jax.Array  # per update: ε_k = explore * explore_decay ** k
@@ -119,6 +119,7 @@ class Replay:
 class DreamState:
     model: TrainState  # the world model: params (controller included), its optimiser, acting carry, updates
     ctrl_opt_state: Any  # the controller's optimiser state
+    reward_opt_state: Any  # the reward head's optimiser state (the heads' optimiser)
     critic: Any  # the critic's parameters (unused by `imagine`)
     critic_opt_state: Any
     replay: Replay
@@ -150,7 +151,8 @@ def _init_dream(variant, game, env_params, cfg, key, hp) -> DreamState:
                     filled=jnp.zeros((), jnp.int32), cursor=jnp.zeros((), jnp.int32))
     model = TrainState(params=params, opt_state=init_opt_state(hp.model.opt, params), carry=carry,
                        step=jnp.zeros((), jnp.int32))
-    return DreamState(model=model, ctrl_opt_state=init_opt_state(hp.ctrl_opt, params), critic=critic,
+    return DreamState(model=model, ctrl_opt_state=init_opt_state(hp.ctrl_opt, params),
+                      reward_opt_state=init_opt_state(hp.ctrl_opt, params), critic=critic,
                       critic_opt_state=init_opt_state(hp.ctrl_opt, critic), replay=replay,
                       games=reset_games(game, env_params, k_env, b, s),
                       action=jnp.zeros((b, variant.arch.action_dim)), key=k_run)
@@ -196,15 +198,26 @@ def _store(replay: Replay, chunk: dict, carry0) -> Replay:
                           cursor=(replay.cursor + 1) % replay.obs.shape[0])
 
 
-def _model_update(variant: Variant, model: TrainState, hp: DreamHParams, chunk: Chunk, carry):
+def _model_update(variant: Variant, state: DreamState, hp: DreamHParams, chunk: Chunk, carry) -> DreamState:
     """One guarded update of the model on `chunk` from `carry`, as offline training makes it;
-    the controller's parameters get no gradient (they are the controller's to learn)."""
+    the controller's parameters get no gradient (they are the controller's to learn). The
+    reward head's own parameters (`reward_mask`) step with the heads' optimiser (Adam), the
+    rest with the model's (SGD): at the rates that train the frame predictor the reward head's
+    squared error grows without bound, and at a weight small enough to hold it the head learns
+    only the mean reward."""
+    model = state.model
     (loss, (_, terms, _)), grads = jax.value_and_grad(
         lambda p: chunk_loss(variant, p, carry, hp.model, chunk), has_aux=True)(model.params)
     grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, variant.controller_mask(model.params))
     params, opt_state, guard = guarded_update(hp.model.opt, hp.model.diverge_threshold, model.params,
                                               model.opt_state, grads, loss)
-    return model.replace(params=params, opt_state=opt_state), {"loss": loss, "terms": terms, **guard}
+    head, head_state, head_guard = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, model.params,
+                                                  state.reward_opt_state, grads, loss)
+    params = jax.tree.map(lambda s, a, m: jnp.where(m > 0, a, s), params, head, variant.reward_mask(model.params))
+    guard = {**guard, "finite": guard["finite"] & head_guard["finite"],
+             "diverged": guard["diverged"] | head_guard["diverged"]}
+    model = model.replace(params=params, opt_state=opt_state)
+    return state.replace(model=model, reward_opt_state=head_state), {"loss": loss, "terms": terms, **guard}
 
 
 def _starts(variant: Variant, params, chunk: Chunk, carry):
@@ -318,9 +331,9 @@ def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, h
         that chunk's states."""
         k_draw, k_imagine = jax.random.split(k)
         replayed, carry = state.replay.chunk(jax.random.randint(k_draw, (), 0, state.replay.filled))
-        model, model_m = _model_update(variant, state.model, hp, replayed, carry)
-        starts = _starts(variant, jax.lax.stop_gradient(model.params), replayed, carry)
-        state, ctrl_terms = _controller_update(variant, cfg, state.replace(model=model), hp, starts, k_imagine, on)
+        state, model_m = _model_update(variant, state, hp, replayed, carry)
+        starts = _starts(variant, jax.lax.stop_gradient(state.model.params), replayed, carry)
+        state, ctrl_terms = _controller_update(variant, cfg, state, hp, starts, k_imagine, on)
         return state, (model_m, ctrl_terms)
 
     state, (model_m, ctrl_m) = jax.lax.scan(learn, state, jax.random.split(k_model, cfg.model_updates))
