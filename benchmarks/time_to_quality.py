@@ -26,7 +26,6 @@ One JSON line at the end; `--out FILE` also writes it to FILE.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import platform
 import sys

@@ -1,0 +1,211 @@
+"""The control experiment: model-based controllers, PPO and the reference policies on the same
+held-out games of the built-in game (`benchmarks/controller.py` and notebook 03 run it).
+
+Every configuration (`CONFIGS`) is an ordinary run (`cdrl.runs.train.train_run`), trained once
+per seed (a seed sets the initialisation, the exploration and the training games), scored
+`evals` times during training and at the end on the same held-out games (seeds 10000, 10001,
+...; `cdrl.evaluation.play.compare_policies`), noise-free: a controller executes ã, PPO its
+greedy buttons. The reference policies play the same games once: they do not learn.
+
+  critic        final_proposal, an actor-critic in imagination (`--controller critic`)
+  imagine       final_proposal, reward ascent through imagined rollouts (`--controller imagine`)
+  rollout       final_proposal, the thesis's reward ascent through the real chunk, scope controller
+  rollout-all   the same, scope all (the thesis's literal wording: is reward hallucinated?)
+  critic-open   reward_prediction (open loop on observations), as `critic`: does closed loop − help?
+  ppo           PPO at the same game frames; ppo-10x at ten times them
+
+Runs live under a work directory, one per configuration and seed (`NAME/seedS`); a finished
+run is read back, an unfinished one resumed, so an experiment continues where it stopped.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Sequence
+
+import jax
+import numpy as np
+import scipy.stats
+
+from cdrl.evaluation.play import EVAL_SEED, reward_fit
+from cdrl.models import make_variant
+from cdrl.runs.config import RunConfig
+from cdrl.runs.online import learner, model_params
+from cdrl.runs.rundir import RunDir
+from cdrl.runs.train import train_run
+
+# name -> options of the run (RunConfig fields) besides the budget's; `frames_factor` scales
+# the budget's game frames.
+CONFIGS: dict[str, dict] = {
+    "critic": {"variant": "final_proposal", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
+    "imagine": {"variant": "final_proposal", "controller": "imagine", "optimizer": "adam", "lr": 1e-3},
+    "rollout": {"variant": "final_proposal", "controller": "rollout", "scope": "controller"},
+    "rollout-all": {"variant": "final_proposal", "controller": "rollout", "scope": "all"},
+    "critic-open": {"variant": "reward_prediction", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
+    "ppo": {"variant": "ppo"},
+    "ppo-10x": {"variant": "ppo", "frames_factor": 10},
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """How much every run of the experiment gets: the preset, the game frames of training,
+    held-out games per evaluation and their step cap, evaluations per run, the model-based
+    runs' updates before their controller learns, and B x T of model-based runs and of PPO."""
+
+    preset: str
+    frames: int
+    eval_episodes: int
+    episode_steps: int
+    evals: int
+    warmup_steps: int
+    model_shape: tuple[int, int] = (8, 16)
+    ppo_shape: tuple[int, int] = (16, 32)
+
+
+BUDGETS = {
+    "full": Budget("small", 38_400, 64, 200, 4, 50),
+    "default": Budget("small", 6_400, 16, 200, 2, 10),
+    "tiny": Budget("tiny", 64, 3, 20, 1, 1, model_shape=(4, 4), ppo_shape=(4, 4)),
+}
+
+
+def config_of(name: str, budget: Budget, seed: int) -> RunConfig:
+    """The run of configuration `name` for `seed` at `budget`."""
+    options = dict(CONFIGS[name])
+    factor = options.pop("frames_factor", 1)
+    batch, unroll = budget.ppo_shape if options["variant"] == "ppo" else budget.model_shape
+    steps = max(1, budget.frames * factor // (batch * unroll))
+    every = max(1, steps // budget.evals)
+    return RunConfig(preset=budget.preset, batch=batch, unroll=unroll, steps=steps, seed=seed, eval_every=every,
+                     checkpoint_every=every, eval_episodes=budget.eval_episodes, episode_steps=budget.episode_steps,
+                     warmup_steps=budget.warmup_steps, tensorboard=False, **options)
+
+
+def train_or_read(cfg: RunConfig, run_dir: Path) -> float:
+    """Train `cfg` in `run_dir`, resume it if it is unfinished, or read it back if it is
+    finished (its evaluation at the last step is there). Returns the seconds spent."""
+    run = RunDir(run_dir)
+    t0 = time.perf_counter()
+    finished = run.has_run() and any(r["step"] == cfg.steps for r in run.evals.read())
+    if run.has_run() and not finished:
+        train_run(None, run_dir, resume=True, progress=False)
+    elif not finished:
+        train_run(cfg, run_dir, progress=False)
+    return time.perf_counter() - t0
+
+
+def seed_result(run_dir: Path, budget: Budget) -> dict:
+    """A finished run's figures: the final held-out `return` (with its CI over the games),
+    `length` (survival), the learning curve ([game frames, held-out return] after each
+    evaluation), the reference rows, and for a reward head its fit on its own held-out play."""
+    run = RunDir(run_dir)
+    cfg = run.read_config()
+    evals = [r for r in run.evals.read() if r.get("split") == "play"]
+    name = "ppo" if cfg.kind == "ppo" else "controller"
+    final = evals[-1]["policies"]
+    frames = cfg.batch * cfg.unroll
+    out = {"return": final[name]["mean_return"], "ci95_over_games": final[name]["ci95"],
+           "length": final[name]["mean_length"], "frames": cfg.steps * frames,
+           "curve": [[r["step"] * frames, r["policies"][name]["mean_return"]] for r in evals],
+           "references": {k: v for k, v in final.items() if k != name}}
+    if cfg.kind == "online" and make_variant(cfg.variant, cfg.arch).predicts_reward:
+        setup, fresh, _ = learner(cfg)
+        state, _, _ = run.read_checkpoints().restore_latest_good(jax.eval_shape(fresh))
+        variant, game, env_params = setup[0], setup[1], setup[2]
+        seeds = np.arange(EVAL_SEED, EVAL_SEED + budget.eval_episodes)
+        out["reward_fit"] = reward_fit(variant, model_params(state), game, env_params, seeds, budget.episode_steps)
+        tail = run.metrics.read()[-max(1, cfg.steps // 4):]
+        out["predicted_reward_per_step"] = float(np.mean([r["terms"]["pred_reward"] for r in tail]))
+        out["real_reward_per_step"] = float(np.mean([r["reward"] for r in tail]))
+        out["excess_ratio_last_quarter"] = float(np.nanmean([r.get("excess_ratio", np.nan) for r in tail]))
+    return out
+
+
+def across(values: Sequence[float]) -> dict:
+    """Mean, standard deviation (ddof 1) and 95 % CI (Student t, n - 1 dof) over seeds."""
+    n = len(values)
+    mean = float(np.mean(values))
+    if n < 2:
+        return {"mean": mean, "std": None, "ci95": None, "per_seed": list(values)}
+    std = float(np.std(values, ddof=1))
+    half = float(scipy.stats.t.ppf(0.975, n - 1) * std / np.sqrt(n))
+    return {"mean": mean, "std": std, "ci95": [mean - half, mean + half], "per_seed": list(values)}
+
+
+def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], work: Path,
+                   on_config=None) -> dict:
+    """Every configuration of `names` on every seed, under `work`: the results (see the module
+    docstring). `on_config(results)` sees the results after each configuration."""
+    results = {"budget": {**dataclasses.asdict(budget), "seeds": list(seeds), "level": "thesis"}, "configs": {},
+               "references": None}
+    for name in names:
+        per_seed = {}
+        for seed in seeds:
+            run_dir = Path(work) / name / f"seed{seed}"
+            wall = train_or_read(config_of(name, budget, seed), run_dir)
+            per_seed[str(seed)] = {**seed_result(run_dir, budget), "wall_s": wall}
+        first = per_seed[str(seeds[0])]
+        results["references"] = results["references"] or first["references"]
+        row = {"options": CONFIGS[name], "frames": first["frames"], "seeds": per_seed,
+               "return": across([s["return"] for s in per_seed.values()]),
+               "length": across([s["length"] for s in per_seed.values()])}
+        for key in ("predicted_reward_per_step", "real_reward_per_step", "excess_ratio_last_quarter"):
+            if key in first:
+                row[key] = across([s[key] for s in per_seed.values()])
+        if "reward_fit" in first:
+            row["reward_fit"] = {k: across([s["reward_fit"][k] for s in per_seed.values()])
+                                 for k in ("correlation", "r2")}
+        results["configs"][name] = row
+        if on_config is not None:
+            on_config(results)
+    return results
+
+
+def format_results(results: dict) -> str:
+    """The experiment's table: per configuration the game frames, the final held-out return
+    across seeds (mean, 95 % CI) and survival; the reference policies below."""
+    b = results["budget"]
+    lines = [f"held-out return over {b['eval_episodes']} games of at most {b['episode_steps']} steps, "
+             f"across seeds {b['seeds']}: mean [95% CI, Student t]; survival in steps",
+             f"{'policy':16s} {'frames':>9s} {'mean':>8s} {'95% CI across seeds':>22s} {'survival':>9s}   per seed"]
+    for name, r in results["configs"].items():
+        ci = r["return"]["ci95"] or [float("nan")] * 2
+        lines.append(f"{name:16s} {r['frames']:9d} {r['return']['mean']:8.3f} [{ci[0]:8.3f}, {ci[1]:8.3f}] "
+                     f"{r['length']['mean']:9.1f}   " + ", ".join(f"{v:.2f}" for v in r["return"]["per_seed"]))
+    for name, row in (results["references"] or {}).items():
+        lines.append(f"{name:16s} {'-':>9s} {row['mean_return']:8.3f} [{row['ci95'][0]:8.3f}, {row['ci95'][1]:8.3f}] "
+                     f"{row['mean_length']:9.1f}   (95% CI over the games; no seed to vary)")
+    return "\n".join(lines)
+
+
+def curves_figure(results: dict):
+    """Held-out return against game frames of training: every configuration's mean over seeds
+    with its 95 % CI band, the reference policies as dashed lines."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 5.5))
+    ax = fig.subplots()
+    for i, (name, r) in enumerate(results["configs"].items()):
+        curves = [s["curve"] for s in r["seeds"].values()]
+        n = min(len(c) for c in curves)
+        frames = np.array([p[0] for p in curves[0][:n]])
+        values = np.array([[p[1] for p in c[:n]] for c in curves])
+        mean = values.mean(axis=0)
+        ax.plot(frames, mean, marker="o", color=f"C{i}", label=f"{name} ({len(curves)} seeds)")
+        if len(curves) > 1:
+            half = scipy.stats.t.ppf(0.975, len(curves) - 1) * values.std(axis=0, ddof=1) / np.sqrt(len(curves))
+            ax.fill_between(frames, mean - half, mean + half, color=f"C{i}", alpha=0.15, linewidth=0)
+    for name, row in (results["references"] or {}).items():
+        ax.axhline(row["mean_return"], linestyle="--", linewidth=1, color="grey")
+        ax.text(1.0, row["mean_return"], f" {name}", transform=ax.get_yaxis_transform(), fontsize=8, va="center")
+    ax.set_xscale("log")
+    ax.set_xlabel("game frames of training")
+    b = results["budget"]
+    ax.set_ylabel(f"held-out return ({b['eval_episodes']} games; mean, 95 % CI over seeds)")
+    ax.set_title(f"Control on the built-in game (level {b['level']}, preset {b['preset']})")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    return fig
