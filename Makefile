@@ -25,9 +25,11 @@ demo: $(STAMP)
 	$(VENV)/bin/cdrl eval $(DEMO)
 	$(VENV)/bin/cdrl plot $(DEMO)
 
-# Two workers, a test file each at a time (a file's module fixtures are built once).
+# Two workers, a test file each at a time (a file's module fixtures are built once); the
+# tests that pin numbers then run compiled at XLA's default optimisation level, as users run.
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -n 2 --dist loadfile
+	$(VENV)/bin/python -m pytest -n 2 --dist loadfile -m "not default_opt"
+	CDRL_TEST_XLA_OPT=default $(VENV)/bin/python -m pytest -n 2 --dist loadfile -m default_opt
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/env_throughput.py --quick

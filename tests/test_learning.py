@@ -3,10 +3,13 @@ built-in game, predicts held-out frames better than copying the last frame withi
 number of steps (benchmarks/time_to_quality.py measures how fast, in seconds)."""
 import json
 
+import pytest
+
 from cdrl.runs.config import DEFAULT_RECIPE, RunConfig
 from cdrl.runs.train import train_run
 
 STEPS = 800
+pytestmark = pytest.mark.default_opt  # compiled as users run it (tests/conftest.py)
 
 
 def test_main_beats_copy_last_frame_on_the_game(tmp_path):

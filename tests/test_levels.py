@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdrl.runs.config import LEVELS as RUN_LEVELS
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sources import game_params, load_episodes
 from envs.slither import LEVELS, Slither, level_params
@@ -41,7 +40,10 @@ def test_contrast_blends_the_background_toward_its_mean(background_only):
 
 
 def test_levels_are_named_overrides():
-    assert LEVELS["thesis"] == {} and set(LEVELS) == set(RUN_LEVELS)
+    assert LEVELS["thesis"] == {}
+    assert [RunConfig(level=name).level for name in LEVELS] == list(LEVELS)  # one list of levels: the game's
+    with pytest.raises(ValueError, match="level must be one of thesis, flat, sparse, clean; got 'hard'"):
+        RunConfig(level="hard")
     clean = level_params("clean")
     assert float(clean.background_contrast) == 0.0 and float(clean.pellet_init_fill) < 0.2
     with pytest.raises(ValueError, match="unknown game level 'hard'; choose one of"):

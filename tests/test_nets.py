@@ -100,6 +100,7 @@ def test_every_intermediate_size_of_the_thesis_networks():
     np.testing.assert_allclose(logits, x[..., 0], rtol=1e-4, atol=1e-4 * np.abs(x).max())
 
 
+@pytest.mark.default_opt
 @pytest.mark.parametrize("size,kernel,stride,padding", [(5, 4, 2, 1), (19, 4, 2, 2), (1, 5, 1, 0), (6, 3, 2, 0)])
 def test_conv_transpose_matches_its_definition(size, kernel, stride, padding):
     rng = np.random.default_rng(0)
@@ -130,6 +131,7 @@ def _assert_same_function(mine, xla, x, k, seed):
         np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-3 * float(jnp.abs(w).max()), err_msg=name)
 
 
+@pytest.mark.default_opt
 # (150, 4, 2, 2): the thesis's first layer; (7, 4, 2, 1): a stride that does not divide
 # h + 2p - k (the last input row is never read: zero gradient); (5, 5, 1, 0): a dense layer;
 # (9, 3, 2, 1): a stride that does not divide the kernel; batch 20: three kernel-gradient tiles;
@@ -145,6 +147,7 @@ def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch
     _assert_same_function(lambda a, b: nets.conv2d(a, b, stride, padding), lambda a, b: _xla_conv(a, b, stride, padding), x, k, 2)
 
 
+@pytest.mark.default_opt
 @pytest.mark.parametrize("size,kernel,stride,padding,batch,c_out",
                          [(10, 4, 2, 1, 2, 2), (19, 4, 2, 2, 2, 2), (1, 5, 1, 0, 2, 2), (6, 3, 2, 0, 2, 2),
                           (9, 4, 2, 1, 20, 2), (8, 4, 2, 2, 2, 1), (9, 4, 2, 1, 1, 2), (10, 4, 2, 2, 1, 1)])
@@ -156,6 +159,7 @@ def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, b
                           _xla_conv_transpose(stride, padding), x, k, 3)
 
 
+@pytest.mark.default_opt
 def test_kernel_gradient_tiles_cover_the_batch(monkeypatch):
     """Tiles of 2 frames, at most 3 tiles: 20 frames go in 3 tiles of 7, 7 and 6."""
     from cdrl.models import conv

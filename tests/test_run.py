@@ -39,6 +39,7 @@ def _finished_checkpoints(ckpt_dir: Path) -> list[int]:
     return sorted(int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit())
 
 
+@pytest.mark.default_opt
 def test_sigkill_and_resume_give_the_same_losses(tmp_path):
     straight = tmp_path / "straight"
     assert cli_main(["train", "--run-dir", str(straight), *SMALL_RUN, "--steps", "60", "--checkpoint-every", "10"]) == 0

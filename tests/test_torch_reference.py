@@ -1,10 +1,8 @@
 """cdrl's JAX programs against the eager PyTorch reference (benchmarks/torch_reference.py):
 same weights and data give the same loss, gradients, final carry and SGD-momentum updates.
 
-The cdrl programs here are compiled with XLA's LLVM back-end optimisation off
-(`xla_backend_optimization_level=0`): the HLO graph (and so the arithmetic) is the one
-`jax.jit` builds, but compiling e.g. `variant.init` (its truncated-normal initialisers) takes
-seconds instead of half a minute on a 2-core machine.
+`make test` runs this file compiled at XLA's default optimisation level (the `default_opt`
+mark, tests/conftest.py): the programs users run.
 """
 import importlib.util
 from pathlib import Path
@@ -13,6 +11,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.default_opt
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

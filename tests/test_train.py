@@ -216,6 +216,7 @@ def test_vmap_over_two_learning_rates_equals_two_runs():
         jax.tree.map(lambda a, b: np.testing.assert_allclose(a[i], b, rtol=1e-5, atol=1e-6), vm.params, single.params)
 
 
+@pytest.mark.default_opt
 def test_main_learns_well_below_copy_last_frame():
     """The small preset of `main` on a learnable moving blob, held-out episodes."""
     arch = SMALL

@@ -19,7 +19,7 @@ import numpy as np
 from cdrl.data.episode import Episode
 from cdrl.data.frames import as_float, copy_last_bce, pixel_bce, target_entropy
 from cdrl.data.stream import Chunk
-from cdrl.models.base import Variant
+from cdrl.models.base import Variant, code_prediction_errors
 from cdrl.training.step import step_inputs
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -34,9 +34,7 @@ def eval_chunk_stats(variant: Variant, params, carry, chunk: Chunk):
         "copy_bce": copy_last_bce(xs.obs, target),
     }
     if variant.shared_code_space:
-        pred = outs["pred_code"][:-1]
-        code = outs["code"][1:, ..., : pred.shape[-1]]
-        err = jnp.mean(jnp.square(pred - code), axis=-1)
+        err = code_prediction_errors(outs)
         stats["code_pred_mse"] = jnp.concatenate([err, jnp.full_like(err[:1], jnp.nan)], axis=0)
     return carry, stats
 

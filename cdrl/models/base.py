@@ -169,11 +169,16 @@ class Variant:
         return {"logits": self.decode(params, d), "code": k, "pred_code": d}
 
 
+def code_prediction_errors(outs: Outputs) -> jax.Array:
+    """Per step `[T - 1, B]`: MSE(d_{t+1}, k_{t+1}) over the code's values, for steps 0 .. T - 2
+    of a chunk's outputs (the predicted code against the next step's input code)."""
+    pred, code = outs["pred_code"][:-1], outs["code"][1:, ..., : outs["pred_code"].shape[-1]]
+    return jnp.mean(jnp.square(pred - code), axis=-1)
+
+
 def code_prediction_error(outs: Outputs, is_first: jax.Array) -> jax.Array:
     """MSE(d_{t+1}, k_{t+1}) over the pairs inside the chunk that do not cross an episode start."""
-    pred, code = outs["pred_code"][:-1], outs["code"][1:, ..., : outs["pred_code"].shape[-1]]
-    valid = (~is_first[1:]).astype(pred.dtype)[..., None]
-    err = jnp.square(pred - code) * valid
-    return jnp.sum(err) / jnp.maximum(jnp.sum(valid) * pred.shape[-1], 1.0)
+    valid = (~is_first[1:]).astype(jnp.float32)
+    return jnp.sum(code_prediction_errors(outs) * valid) / jnp.maximum(jnp.sum(valid), 1.0)
 
 

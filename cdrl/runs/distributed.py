@@ -8,7 +8,7 @@ cluster JAX detects itself (SLURM's `SLURM_*` variables, Open MPI, Kubernetes, C
 CPU devices talk through gloo collectives. After it, `jax.devices()` lists every process's
 devices and every process runs the same program on global arrays.
 
-The helpers below are what the processes of one run do together: a barrier, gathering small
+The helpers below are what the processes of one run do together: gathering small
 JSON-able results to every process (`multihost_utils.process_allgather`), and running a step
 on process 0 before the others (collecting a data set once). With one process they are plain
 calls.
@@ -58,12 +58,6 @@ def initialize() -> dict:
 def is_primary() -> bool:
     """Whether this is process 0, which writes the files of the run as a whole."""
     return jax.process_index() == 0
-
-
-def barrier(name: str) -> None:
-    """Wait until every process has reached `name`."""
-    if jax.process_count() > 1:
-        multihost_utils.sync_global_devices(name)
 
 
 def allgather_json(value) -> list:
