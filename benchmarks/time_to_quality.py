@@ -42,7 +42,7 @@ from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sources import load_episodes, with_obs_norm
 from cdrl.training.step import init_state, train_step
-from common import emit
+from common import emit, warn_if_busy
 
 ROWS = {
     "small-thesis": dict(preset="small", recipe="thesis", framework="cdrl"),
@@ -209,6 +209,7 @@ def main(argv=None) -> int:
     for name in args.rows:
         result["rows"].append(run_row(name, args, caps[name]))
     result["load_avg_end"] = os.getloadavg()[0]
+    warn_if_busy(result, result["load_avg_start"], result["load_avg_end"])
     rows = {r["row"]: r for r in result["rows"]}
     if "small-fast" in rows and "small-fast-torch" in rows:
         a, b = rows["small-fast"].get("to_1"), rows["small-fast-torch"].get("to_1")

@@ -152,3 +152,14 @@ def test_eval_policy_needs_a_controller_run(tmp_path, capsys):
     assert "has no controller" in capsys.readouterr().err
     assert cli_main(["eval", "--policy", str(tmp_path / "nowhere")]) == 2
     assert "nowhere does not exist" in capsys.readouterr().err
+
+
+def test_the_readme_python_example_runs(tmp_path, monkeypatch):
+    """The README's Python quickstart, as written, trains a run and resumes it."""
+    import re
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    code = re.search(r"### Python\n.*?```python\n(.*?)```", readme, re.S).group(1)
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README.md", "exec"), {})
+    assert [r["step"] for r in _records(tmp_path / "runs" / "py")] == list(range(60))
