@@ -389,17 +389,13 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
 def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
     import jax
 
-    from cdrl.models import make_variant
     from cdrl.runs.config import RunConfig
-    from cdrl.runs.online import hparams
-    from cdrl.runs.sources import run_game
-    from cdrl.training.online import OnlineConfig, init_online, online_step
+    from cdrl.runs.online import learner
+    from cdrl.training.online import init_online, online_step
 
     cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed)
-    variant = make_variant(cfg.variant, cfg.arch)
-    game, env_params = run_game(cfg)
-    ocfg = OnlineConfig(num_envs=B, unroll=T)
-    hp = hparams(cfg)
+    program = learner(cfg)
+    variant, game, env_params, ocfg, hp = program.model, program.game, program.env_params, program.config, program.hp
     key = jax.random.PRNGKey(cfg.seed)
     # Set-up (not measured): init_online compiled with LLVM optimisation off, see _FAST_COMPILE.
     init = jax.jit(init_online, static_argnums=(0, 1, 3))

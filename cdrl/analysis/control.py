@@ -24,14 +24,13 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-import jax
 import numpy as np
 import scipy.stats
 
 from cdrl.evaluation.play import EVAL_SEED, reward_fit
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
-from cdrl.runs.online import learner, model_params
+from cdrl.runs.online import restore_learner
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.train import train_run
 
@@ -111,11 +110,10 @@ def seed_result(run_dir: Path, budget: Budget) -> dict:
            "curve": [[r["step"] * frames, r["policies"][name]["mean_return"]] for r in evals],
            "references": {k: v for k, v in final.items() if k != name}}
     if cfg.kind == "online" and make_variant(cfg.variant, cfg.arch).predicts_reward:
-        setup, fresh, _ = learner(cfg)
-        state, _, _ = run.read_checkpoints().restore_latest_good(jax.eval_shape(fresh))
-        variant, game, env_params = setup[0], setup[1], setup[2]
+        _, program, state = restore_learner(run)
         seeds = np.arange(EVAL_SEED, EVAL_SEED + budget.eval_episodes)
-        out["reward_fit"] = reward_fit(variant, model_params(state), game, env_params, seeds, budget.episode_steps)
+        out["reward_fit"] = reward_fit(program.model, program.params(state), program.game, program.env_params, seeds,
+                                       budget.episode_steps)
         tail = run.metrics.read()[-max(1, cfg.steps // 4):]
         out["predicted_reward_per_step"] = float(np.mean([r["terms"]["pred_reward"] for r in tail]))
         out["real_reward_per_step"] = float(np.mean([r["reward"] for r in tail]))

@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import numpy as np
@@ -94,54 +93,59 @@ class GameJob(Job):
         return {"loss": f"{records[0]['loss']:.4f}", "reward": f"{records[0]['reward']:.3f}"}
 
 
-def game_run(cfg: RunConfig, run: RunDir, resume: bool, init_state, job_of: Callable, progress: bool | None) -> dict:
-    """The host loop of a `GameJob` in `run`: `init_state` is the fresh program state (restored
-    when resuming), `job_of(checkpoints, state)` the job. Ends with the policy table on stderr."""
-    opened = run.open(cfg, init_state, resume)
-    job: GameJob = job_of(opened.checkpoints, opened.state)
-    plan = Plan(steps=cfg.steps, start=opened.start, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every)
-    sink = run_writer(run, opened.start, cfg.tensorboard)
-    with contextlib.closing(sink):
-        result = host_loop(job, opened.state, plan, [sink], progress=sys.stderr.isatty() if progress is None else progress)
-        if 0 in result.last_eval:
-            rows = result.last_eval[0]["policies"]
-        else:  # a finished run resumed: play it again
-            rows = job.play(result.state)
-    print(format_table(rows), file=sys.stderr)
-    return {"run_dir": str(run.path), "steps": cfg.steps, "policies": rows}
+@dataclasses.dataclass(frozen=True)
+class Learner:
+    """A program that plays the game as it learns, as a run builds it from its config: its
+    model (a variant, or PPO's architecture), the game and its parameters, the program's static
+    config and traced hyper-parameters, its `init` and jitted `step` (each called as
+    `fn(model, game, config, ..., hp, env_params)`), the name of its policy's row, the policy of
+    a state (noise-free, in the form of `cdrl.evaluation.play`), the state's parameters whose
+    norm ratios are logged, and the metrics its records add."""
+
+    model: Any
+    game: Any
+    env_params: Any
+    config: Any
+    hp: Any
+    init: Callable
+    step: Callable
+    name: str
+    policy: Callable
+    params: Callable
+    extras: tuple[str, ...] = ()
+
+    def fresh(self, seed: int):
+        return self.init(self.model, self.game, self.env_params, self.config, jax.random.PRNGKey(seed), self.hp)
+
+    def program(self, state):
+        return self.step(self.model, self.game, self.config, state, self.hp, self.env_params)
+
+    def job(self, cfg: RunConfig, ckpts: Checkpoints, state) -> GameJob:
+        return GameJob(cfg, self.program, ckpts, group_names(self.params(state)), self.name,
+                       lambda s: self.policy(self.model, self.params(s)), self.game, self.env_params, self.extras)
 
 
-def hparams(cfg: RunConfig) -> OnlineHParams:
-    return OnlineHParams.create(opt=cfg.opt_hparams(), ascent=cfg.ascent, reward_weight=cfg.reward_weight,
-                                noise_std=cfg.noise_std, noise_decay=cfg.noise_decay, warmup_steps=cfg.warmup_steps,
-                                diverge_threshold=cfg.diverge_threshold, scope=cfg.scope)
-
-
-def online_setup(cfg: RunConfig):
-    """(variant, game, its parameters, static config, traced hyper-parameters) of an online run."""
-    variant = make_variant(cfg.variant, cfg.arch)
+def learner(cfg: RunConfig) -> Learner:
+    """The program a run of `cfg` plays the game with: PPO, the thesis's online learner
+    (`--controller rollout`), or the learner with a replay buffer and imagination."""
     game, env_params = run_game(cfg)
-    return variant, game, env_params, OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll), hparams(cfg)
-
-
-def online_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJob:
-    """The `GameJob` of an online run with the `online_setup(cfg)` it was built from."""
-    variant, game, env_params, ocfg, hp = setup
-    program = functools.partial(_online_program, variant, game, ocfg, hp, env_params)
-    return GameJob(cfg, program, ckpts, group_names(state.train.params), "controller",
-                   lambda s: controller_policy(variant, model_params(s)), game, env_params,
-                   extras=("noise_std", "ascent_on"))
-
-
-def _online_program(variant, game, ocfg, hp, env_params, state):
-    return online_step(variant, game, ocfg, state, hp, env_params)
-
-
-def dream_setup(cfg: RunConfig):
-    """(variant, game, its parameters, static config, traced hyper-parameters) of an online run
-    whose controller learns in imagination (`cdrl.training.dream`)."""
+    if cfg.kind == "ppo":
+        pcfg = PPOConfig(num_envs=cfg.batch, unroll=cfg.unroll, epochs=cfg.ppo_epochs,
+                         minibatches=cfg.ppo_minibatches)
+        hp = PPOHParams.create(opt=cfg.opt_hparams(), gamma=cfg.gamma, gae_lambda=cfg.gae_lambda,
+                               clip_eps=cfg.clip_eps, value_coef=cfg.value_coef, entropy_coef=cfg.entropy_coef,
+                               diverge_threshold=cfg.diverge_threshold)
+        return Learner(cfg.arch, game, env_params, pcfg, hp, init_ppo, ppo_step, "ppo", ppo_policy,
+                       lambda s: s.params)
     variant = make_variant(cfg.variant, cfg.arch)
-    game, env_params = run_game(cfg)
+    if cfg.controller == "rollout":
+        hp = OnlineHParams.create(opt=cfg.opt_hparams(), ascent=cfg.ascent, reward_weight=cfg.reward_weight,
+                                  noise_std=cfg.noise_std, noise_decay=cfg.noise_decay,
+                                  warmup_steps=cfg.warmup_steps, diverge_threshold=cfg.diverge_threshold,
+                                  scope=cfg.scope)
+        return Learner(variant, game, env_params, OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll), hp,
+                       init_online, online_step, "controller", controller_policy, model_params,
+                       ("noise_std", "ascent_on"))
     dcfg = DreamConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay, model_updates=cfg.model_updates,
                        horizon=cfg.horizon, controller=cfg.controller)
     model = HParams.create(variant, opt=cfg.opt_hparams(), diverge_threshold=cfg.diverge_threshold,
@@ -150,34 +154,8 @@ def dream_setup(cfg: RunConfig):
                              ascent=cfg.ascent, explore=cfg.noise_std, explore_decay=cfg.noise_decay,
                              warmup_steps=cfg.warmup_steps, gamma=cfg.gamma, lam=cfg.gae_lambda,
                              entropy=cfg.entropy_coef)
-    return variant, game, env_params, dcfg, hp
-
-
-def dream_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJob:
-    variant, game, env_params, dcfg, hp = setup
-    program = functools.partial(_dream_program, variant, game, dcfg, hp, env_params)
-    return GameJob(cfg, program, ckpts, group_names(state.model.params), "controller",
-                   lambda s: controller_policy(variant, model_params(s)), game, env_params,
-                   extras=("explore", "controller_on"))
-
-
-def _dream_program(variant, game, dcfg, hp, env_params, state):
-    return dream_step(variant, game, dcfg, state, hp, env_params)
-
-
-def learner(cfg: RunConfig):
-    """(setup, fresh state of the program, job maker) of a run that plays the game."""
-    if cfg.kind == "ppo":
-        setup = ppo_setup(cfg)
-        arch, game, env_params, pcfg, hp = setup
-        return setup, lambda: init_ppo(arch, game, env_params, pcfg, jax.random.PRNGKey(cfg.seed), hp), ppo_job
-    if cfg.controller == "rollout":
-        setup = online_setup(cfg)
-        variant, game, env_params, ocfg, hp = setup
-        return setup, lambda: init_online(variant, game, env_params, ocfg, jax.random.PRNGKey(cfg.seed), hp), online_job
-    setup = dream_setup(cfg)
-    variant, game, env_params, dcfg, hp = setup
-    return setup, lambda: init_dream(variant, game, env_params, dcfg, jax.random.PRNGKey(cfg.seed), hp), dream_job
+    return Learner(variant, game, env_params, dcfg, hp, init_dream, dream_step, "controller", controller_policy,
+                   model_params, ("explore", "controller_on"))
 
 
 def model_params(state):
@@ -190,32 +168,35 @@ def model_params(state):
 
 
 def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
-    """A controller variant, or PPO, trained against the game in `run`."""
+    """A controller variant, or PPO, trained against the game in `run`; ends with the policy
+    table on stderr."""
     if not resume:
         cfg = with_obs_norm(cfg, run.data_cache)
-    setup, fresh, job_of = learner(cfg)
-    return game_run(cfg, run, resume, fresh(), lambda ckpts, s: job_of(cfg, setup, ckpts, s), progress)
+    program = learner(cfg)
+    opened = run.open(cfg, program.fresh(cfg.seed), resume)
+    job = program.job(cfg, opened.checkpoints, opened.state)
+    plan = Plan(steps=cfg.steps, start=opened.start, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every)
+    sink = run_writer(run, opened.start, cfg.tensorboard)
+    with contextlib.closing(sink):
+        result = host_loop(job, opened.state, plan, [sink], progress=sys.stderr.isatty() if progress is None else progress)
+        if 0 in result.last_eval:
+            rows = result.last_eval[0]["policies"]
+        else:  # a finished run resumed: play it again
+            rows = job.play(result.state)
+    print(format_table(rows), file=sys.stderr)
+    return {"run_dir": str(run.path), "steps": cfg.steps, "policies": rows}
 
 
-def ppo_setup(cfg: RunConfig):
-    """(architecture, game, its parameters, static config, traced hyper-parameters) of a PPO run."""
-    game, env_params = run_game(cfg)
-    pcfg = PPOConfig(num_envs=cfg.batch, unroll=cfg.unroll, epochs=cfg.ppo_epochs, minibatches=cfg.ppo_minibatches)
-    hp = PPOHParams.create(opt=cfg.opt_hparams(), gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_eps=cfg.clip_eps,
-                           value_coef=cfg.value_coef, entropy_coef=cfg.entropy_coef,
-                           diverge_threshold=cfg.diverge_threshold)
-    return cfg.arch, game, env_params, pcfg, hp
-
-
-def ppo_job(cfg: RunConfig, setup: tuple, ckpts: Checkpoints, state) -> GameJob:
-    arch, game, env_params, pcfg, hp = setup
-    program = functools.partial(_ppo_program, arch, game, pcfg, hp, env_params)
-    return GameJob(cfg, program, ckpts, group_names(state.params), "ppo", lambda s: ppo_policy(arch, s.params),
-                   game, env_params)
-
-
-def _ppo_program(arch, game, pcfg, hp, env_params, state):
-    return ppo_step(arch, game, pcfg, state, hp, env_params)
+def restore_learner(run: RunDir) -> tuple[RunConfig, Learner, Any]:
+    """(config, learner, state of the latest good checkpoint) of a run that plays the game."""
+    cfg = run.read_config()
+    if cfg.kind == "offline":
+        raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
+    program = learner(cfg)
+    state, _, warnings = run.read_checkpoints().restore_latest_good(jax.eval_shape(lambda: program.fresh(cfg.seed)))
+    for w in warnings:
+        print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+    return cfg, program, state
 
 
 def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL_SEED) -> dict[str, dict]:
@@ -223,11 +204,5 @@ def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL
     a controller, or PPO's greedy policy) against the reference policies on the same held-out
     games."""
     run = RunDir(run_dir)
-    cfg = run.read_config()
-    if cfg.kind == "offline":
-        raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
-    setup, fresh, job_of = learner(cfg)
-    state, _, warnings = run.read_checkpoints().restore_latest_good(jax.eval_shape(fresh))
-    for w in warnings:
-        print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
-    return job_of(cfg, setup, run.read_checkpoints(), state).play(state, episodes, seed)
+    cfg, program, state = restore_learner(run)
+    return program.job(cfg, run.read_checkpoints(), state).play(state, episodes, seed)
