@@ -116,7 +116,7 @@ def test_network_shapes_and_initial_policy(start):
     glorot_std = np.sqrt(2.0 / (CFG.hidden + 3))  # of the project's Glorot-uniform init
     assert 0.005 < np.std(params["policy"]["kernel"]) / glorot_std < 0.02
     assert 0.5 < np.std(params["value"]["kernel"]) / np.sqrt(2.0 / (CFG.hidden + 1)) < 2.0
-    logits, value = ppo.policy_value(ARCH, params, state.obs)
+    logits, value = ppo.policy_value(ARCH, params, state.games.obs)
     assert logits.shape == (CFG.num_envs, 3) and value.shape == (CFG.num_envs,)
     assert float(jnp.max(jnp.abs(logits))) < 0.1  # near-uniform buttons at the start
     for arch in (SMALL, THESIS):
@@ -137,7 +137,7 @@ def test_rollout_equals_a_python_loop(start):
         trajs.append(traj)
     traj = jax.tree.map(lambda *x: np.concatenate(x), *trajs)
     step = jax.jit(lambda c: ppo.transition(ARCH, g, state.params, env_params, c))
-    c, records = (state.env_state, state.obs, state.key, state.episode_return, state.episode_length), []
+    c, records = (state.games, state.key), []
     for _ in range(3 * CFG.unroll):
         c, r = step(c)
         records.append(r)
@@ -146,8 +146,9 @@ def test_rollout_equals_a_python_loop(start):
         np.testing.assert_allclose(traj[k], loop[k], rtol=1e-5, atol=1e-6, err_msg=k)
     for k in ("action", "done", "finished_length"):
         np.testing.assert_array_equal(traj[k], loop[k], err_msg=k)
-    np.testing.assert_allclose(s.obs, c[1], rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(last_value, ppo.policy_value(ARCH, state.params, c[1])[1], rtol=1e-5, atol=1e-6)
+    games, _ = c
+    np.testing.assert_allclose(s.games.obs, games.obs, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(last_value, ppo.policy_value(ARCH, state.params, games.obs)[1], rtol=1e-5, atol=1e-6)
     assert set(np.unique(traj["action"])) <= {0.0, 1.0}
 
     # Episodes: returns and lengths counted from the records themselves.
@@ -159,9 +160,9 @@ def test_rollout_equals_a_python_loop(start):
         np.testing.assert_allclose(traj["finished_return"][t], np.where(done[t], ret, 0.0), rtol=1e-5, atol=1e-5)
         np.testing.assert_array_equal(traj["finished_length"][t], np.where(done[t], length, 0))
         ret, length = np.where(done[t], 0.0, ret), np.where(done[t], 0, length)
-    np.testing.assert_allclose(s.episode_return, ret, rtol=1e-5, atol=1e-5)
-    np.testing.assert_array_equal(s.episode_length, length)
-    np.testing.assert_array_equal(s.env_state.time, length)  # the reset games started afresh
+    np.testing.assert_allclose(s.games.episode_return, ret, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(s.games.episode_length, length)
+    np.testing.assert_array_equal(s.games.env_state.time, length)  # the reset games started afresh
 
     # The recorded log-probs are the network's on the recorded frames and buttons.
     logits, _ = ppo.policy_value(ARCH, state.params, jnp.asarray(traj["obs"]))
@@ -182,7 +183,7 @@ def test_step_learns_from_its_own_rollout(start):
     frozen = hp.replace(opt=hp.opt.replace(lr=jnp.zeros(())))
     new, metrics = ppo.ppo_step(ARCH, g, CFG, _copy(state), frozen, env_params)
     jax.tree.map(np.testing.assert_array_equal, new.params, state.params)
-    np.testing.assert_allclose(new.obs, rolled.obs, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(new.games.obs, rolled.games.obs, rtol=1e-5, atol=1e-6)
     assert int(new.step) == 1
     terms = metrics["terms"]
     assert abs(float(terms["approx_kl"])) < 1e-6 and float(terms["clip_frac"]) == 0.0
@@ -211,7 +212,7 @@ def test_hparams_are_traced_so_a_vmap_sweeps_them(start):
     states = jax.tree.map(lambda x: jnp.stack([x, x]), state)
     out, metrics = jax.eval_shape(jax.vmap(lambda s, h: ppo.ppo_step_fn(ARCH, g, CFG, s, h, env_params)), states, hps)
     assert metrics["loss"].shape == (2,) and metrics["action_mean"].shape == (2, 3)
-    assert out.obs.shape == (2,) + state.obs.shape
+    assert out.games.obs.shape == (2,) + state.games.obs.shape
 
 
 def test_policy_presses_by_probability():

@@ -50,6 +50,7 @@ import jax.numpy as jnp
 from cdrl.data.frames import resize_obs
 from cdrl.models import nets
 from cdrl.models.arch import ArchConfig
+from cdrl.training.online import Games, reset_games, step_games
 from cdrl.training.optim import OptHParams, init_opt_state
 from cdrl.training.step import guarded_update, run_once
 
@@ -128,11 +129,8 @@ class PPOHParams:
 class PPOState:
     params: Any
     opt_state: Any
-    env_state: Any  # [B] games
-    obs: jax.Array  # [B, S, S] at the model's image size: what the policy sees next
+    games: Games  # the B games: states, the frames the policy sees next, episode counters
     key: jax.Array
-    episode_return: jax.Array  # [B] running return of the current episodes
-    episode_length: jax.Array  # [B]
     step: jax.Array  # int32: updates (rollouts) done
 
 
@@ -181,11 +179,6 @@ def sample_action(key: jax.Array, logits: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------- games and rollout
 
 
-def _reset_games(game, env_params, key, n: int, size: int):
-    obs, env_state = jax.vmap(game.reset, in_axes=(0, None))(jax.random.split(key, n), env_params)
-    return resize_obs(obs, size), env_state
-
-
 def init_ppo(arch: ArchConfig, game, env_params, cfg: PPOConfig, key: jax.Array, hp: PPOHParams) -> PPOState:
     """Fresh parameters, optimiser state and B new games."""
     return run_once(_init_ppo, arch, game, env_params, cfg, key, hp, static_argnums=(0, 1, 3))
@@ -194,49 +187,33 @@ def init_ppo(arch: ArchConfig, game, env_params, cfg: PPOConfig, key: jax.Array,
 def _init_ppo(arch, game, env_params, cfg, key, hp) -> PPOState:
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = init_params(arch, k_params, cfg.hidden)
-    obs, env_state = _reset_games(game, env_params, k_env, cfg.num_envs, arch.image_size)
-    b = cfg.num_envs
-    return PPOState(params=params, opt_state=init_opt_state(hp.opt, params), env_state=env_state, obs=obs,
-                    key=k_run, episode_return=jnp.zeros((b,)), episode_length=jnp.zeros((b,), jnp.int32),
+    return PPOState(params=params, opt_state=init_opt_state(hp.opt, params),
+                    games=reset_games(game, env_params, k_env, cfg.num_envs, arch.image_size), key=k_run,
                     step=jnp.zeros((), jnp.int32))
 
 
-def transition(arch: ArchConfig, game, params, env_params, c):
-    """One step of B games on the rollout carry `c` = (games, o_t, key, episode returns, lengths).
-    Returns (next c, record of the step)."""
-    size = arch.image_size
-    env_state, obs, key, ep_ret, ep_len = c
-    key, k_act, k_env, k_reset = jax.random.split(key, 4)
-    logits, value = policy_value(arch, params, obs)
+def transition(arch: ArchConfig, game, params, env_params, c: tuple[Games, jax.Array]):
+    """One step of B games on the rollout carry `c` = (games, key) (`cdrl.training.online.step_games`:
+    a game that ends is replaced by a new one at once). Returns (next c, record of the step)."""
+    games, key = c
+    key, k_act, k_game = jax.random.split(key, 3)
+    logits, value = policy_value(arch, params, games.obs)
     action = sample_action(k_act, logits)
-    nxt, env_state2, reward, term, trunc, _ = jax.vmap(game.step, in_axes=(0, 0, 0, None))(
-        jax.random.split(k_env, obs.shape[0]), env_state, action, env_params)
-    nxt = resize_obs(nxt, size)
-    reward = reward.astype(jnp.float32)
-    done = term | trunc
-    fresh_obs, fresh_state = _reset_games(game, env_params, k_reset, obs.shape[0], size)
-    env_state = jax.tree.map(
-        lambda f, s: jnp.where(done.reshape(done.shape + (1,) * (s.ndim - 1)), f, s), fresh_state, env_state2)
-    ep_ret, ep_len = ep_ret + reward, ep_len + 1
-    record = {"obs": obs, "action": action, "log_prob": log_prob(logits, action), "value": value,
-              "reward": reward, "done": done, "finished_return": jnp.where(done, ep_ret, 0.0),
-              "finished_length": jnp.where(done, ep_len, 0)}
-    c = (env_state, jnp.where(done[:, None, None], fresh_obs, nxt), key,
-         jnp.where(done, 0.0, ep_ret), jnp.where(done, 0, ep_len))
-    return c, record
+    after, _, reward, stats = step_games(game, env_params, games, action, k_game, arch.image_size)
+    record = {"obs": games.obs, "action": action, "log_prob": log_prob(logits, action), "value": value,
+              "reward": reward, "done": stats["done"], "finished_return": stats["finished_return"],
+              "finished_length": stats["finished_length"]}
+    return (after, key), record
 
 
 def rollout(arch: ArchConfig, game, cfg: PPOConfig, state: PPOState, env_params):
     """T steps of the B games with the state's parameters (a `lax.scan` of `transition`).
-    Returns (state with the games, frames, key and episode counters moved on;
-    records `[T, B, ...]`; value of the last frame `[B]`)."""
-    c0 = (state.env_state, state.obs, state.key, state.episode_return, state.episode_length)
-    c, traj = jax.lax.scan(lambda c, _: transition(arch, game, state.params, env_params, c), c0, None,
-                           length=cfg.unroll)
-    env_state, obs, key, ep_ret, ep_len = c
-    _, last_value = policy_value(arch, state.params, obs)
-    new = state.replace(env_state=env_state, obs=obs, key=key, episode_return=ep_ret, episode_length=ep_len)
-    return new, traj, last_value
+    Returns (state with the games and key moved on; records `[T, B, ...]`; value of the last
+    frame `[B]`)."""
+    (games, key), traj = jax.lax.scan(lambda c, _: transition(arch, game, state.params, env_params, c),
+                                      (state.games, state.key), None, length=cfg.unroll)
+    _, last_value = policy_value(arch, state.params, games.obs)
+    return state.replace(games=games, key=key), traj, last_value
 
 
 def gae(rewards, values, dones, last_value, gamma, gae_lambda):
