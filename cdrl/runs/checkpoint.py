@@ -3,6 +3,9 @@ parameters, optimiser state, every stream's carry, step; or an online run's `Onl
 plus JSON metadata (the run config, the data cursor, the
 PRNG key). Orbax writes each checkpoint to a temporary directory and renames it when
 complete, so an interrupted save never replaces a good checkpoint; the last k are kept.
+Each finished checkpoint then gets the checksums of its files (`cdrl.runs.checksums`), and
+every restore checks them first: a flipped bit is a corrupt checkpoint, never a slightly
+different state. Restoring the newest good checkpoint skips corrupt ones with one line each.
 
 With several processes (`jax.distributed`) a save and a restore are collective: every process
 calls them with the same global arrays, each writes its shards (orbax's multi-process
@@ -12,13 +15,17 @@ its data cursor).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
 import jax
 import orbax.checkpoint as ocp
+
+from cdrl.runs import checksums
 
 
 logging.getLogger("absl").setLevel(logging.WARNING)
@@ -34,6 +41,41 @@ def _with_sharding(leaf) -> jax.ShapeDtypeStruct:
 
 class CheckpointError(RuntimeError):
     """No usable checkpoint, or one from an incompatible configuration."""
+
+
+class CorruptCheckpointError(CheckpointError):
+    """A checkpoint's files do not match their checksums, or it lacks them (its save did not finish)."""
+
+
+# The metadata key that says a checkpoint's save writes checksums (a checkpoint written before
+# they existed has none and restores unchecked).
+CHECKSUMMED = "checksums"
+
+
+def _first_line(exc: BaseException, limit: int = 200) -> str:
+    text = (str(exc).strip().splitlines() or [""])[0]
+    return f"{type(exc).__name__}: {text[:limit]}{'...' if len(text) > limit else ''}"
+
+
+@contextlib.contextmanager
+def _closed_loop_callbacks_dropped():
+    """While orbax reads a checkpoint it cannot restore: orbax runs each restore in an event loop
+    of its own (`asyncio_utils.run_sync`) and closes it as soon as the first array read fails,
+    while tensorstore's reads of the other arrays are still pending; each of them completes into
+    the closed loop and its callback's `RuntimeError: Event loop is closed` reaches
+    `sys.unraisablehook`, a traceback each. Only those are dropped, and only here; a checkpoint
+    with checksums is checked before orbax reads it, so this is for those written without."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        if not (isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
 
 
 # How many times a reader lists the checkpoints again after one it was reading was removed.
@@ -84,17 +126,23 @@ class Checkpoints:
 
     def steps(self) -> list[int]:
         if self.read_only:  # a fresh listing: a live writer saves and rotates meanwhile
-            self.manager = self._open_reader()
+            old, self.manager = self.manager, self._open_reader()
+            old.close()
         return sorted(self.manager.all_steps())
+
+    def close(self) -> None:
+        self.manager.close()
 
     def save(self, step: int, state, meta: dict[str, Any]) -> None:
         """Save `state` as checkpoint `step`, replacing a stale one of the same step (left by a
         corrupt checkpoint that a resumed run has reached again). A write that fails (a full
         disk) raises `CheckpointError` naming the checkpoint; its partial temporary directory is
-        removed and the earlier checkpoints are left as they were."""
+        removed and the earlier checkpoints are left as they were. The primary process then
+        writes the checksums of the checkpoint's files into it (`cdrl.runs.checksums`)."""
         if step in self.manager.all_steps():
             self.manager.delete(step)
         self._remove_temporary(step)  # left by a save that failed or was killed
+        meta = {**meta, CHECKSUMMED: checksums.ALGORITHM}
         try:
             self.manager.save(
                 step,
@@ -102,6 +150,8 @@ class Checkpoints:
                 force=True,
             )
             self.manager.wait_until_finished()
+            if self._is_primary():
+                checksums.write_checksums(self.directory / str(step))
         except OSError as exc:
             self._discard_partial(step)
             kept = ", ".join(map(str, self.steps())) or "none"
@@ -112,6 +162,8 @@ class Checkpoints:
     def _discard_partial(self, step: int) -> None:
         try:
             self.manager.wait_until_finished()
+            if self._is_primary() and step in self.manager.all_steps():  # committed, without checksums
+                self.manager.delete(step)
         except Exception:  # noqa: BLE001 - the save already failed; only its leftovers matter now
             pass
         self._remove_temporary(step)
@@ -128,9 +180,29 @@ class Checkpoints:
         restored = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
         return restored["meta"]
 
+    def verify(self, step: int, meta: dict | None = None) -> bool:
+        """Check checkpoint `step`'s files against their checksums; `meta`: its metadata if read
+        already. Returns False for a checkpoint written before checksums existed (nothing to
+        check). Raises `CorruptCheckpointError` naming the checkpoint and the file."""
+        path = self.directory / str(step)
+        if not checksums.has_checksums(path):
+            if (self.read_meta(step) if meta is None else meta).get(CHECKSUMMED):
+                raise CorruptCheckpointError(f"checkpoint {path} is unfinished: its save wrote no checksums")
+            return False
+        try:
+            checksums.verify(path)
+        except checksums.ChecksumError as exc:
+            raise CorruptCheckpointError(f"checkpoint {path} is corrupt: {exc}") from None
+        return True
+
     def restore(self, step: int, like):
         """The state saved at `step`, shaped like `like` (an abstract or concrete state), on
-        the shardings of `like` (this process's first device for a leaf without one)."""
+        the shardings of `like` (this process's first device for a leaf without one), after
+        checking its checksums (`verify`)."""
+        self.verify(step)
+        return self._restore(step, like)
+
+    def _restore(self, step: int, like):
         abstract = jax.tree.map(_with_sharding, like)
         restored = self.manager.restore(
             step,
@@ -141,12 +213,14 @@ class Checkpoints:
     def restore_latest_good(self, like, check_meta=None) -> tuple[Any, dict[str, Any], list[str]]:
         """The newest checkpoint that restores cleanly; older ones are tried when a newer one is
         corrupt. `check_meta(meta)` may raise `CheckpointError` for an incompatible config
-        (that is not skipped: it is an error). Returns (state, meta, warnings)."""
+        (that is not skipped: it is an error). Returns (state, meta, warnings), a warning per
+        checkpoint skipped (`restore_newest` prints them)."""
         for _ in range(VANISHED_RETRIES):
             steps = self.steps()
             if not steps:
                 raise CheckpointError(f"no checkpoint found in {self.directory}")
-            found, warnings = self._newest_good(steps, like, check_meta)
+            with _closed_loop_callbacks_dropped():
+                found, warnings = self._newest_good(steps, like, check_meta)
             if found is not _VANISHED:
                 break
         else:
@@ -167,17 +241,32 @@ class Checkpoints:
             path = self.directory / str(step)
             try:
                 meta = self.read_meta(step)
+                self.verify(step, meta)
+            except CorruptCheckpointError as exc:
+                if not path.exists():
+                    return _VANISHED, warnings
+                warnings.append(str(exc))
+                continue
             except Exception as exc:  # noqa: BLE001 - any read failure means this one is unusable
                 if not path.exists():
                     return _VANISHED, warnings
-                warnings.append(f"checkpoint {path} is unreadable ({type(exc).__name__}: {exc})")
+                warnings.append(f"checkpoint {path} is unreadable ({_first_line(exc)})")
                 continue
             if check_meta is not None:
                 check_meta(meta)
             try:
-                return self.restore(step, like), warnings
+                return self._restore(step, like), warnings
             except Exception as exc:  # noqa: BLE001
                 if not path.exists():
                     return _VANISHED, warnings
-                warnings.append(f"checkpoint {path} is corrupt ({type(exc).__name__}: {exc})")
+                warnings.append(f"checkpoint {path} is corrupt ({_first_line(exc)})")
         return None, warnings
+
+    def restore_newest(self, like, check_meta=None, say: bool = True) -> tuple[Any, dict[str, Any]]:
+        """`restore_latest_good`, each checkpoint it skipped named on stderr in one line with the
+        one it restored instead (`say`: this process prints): what `cdrl train --resume`,
+        `cdrl eval` and `cdrl plot` restore with."""
+        state, meta, warnings = self.restore_latest_good(like, check_meta)
+        for warning in warnings if say else ():
+            print(f"warning: {warning}; restored checkpoint {meta.get('step')} instead", file=sys.stderr)
+        return state, meta
