@@ -11,7 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from cdrl.data.episode import Episode
-from cdrl.data.writer import Writer, params_dict, write_set
+from cdrl.data.writer import Writer, check_collection, params_dict, write_set
 
 
 @functools.lru_cache(maxsize=8)
@@ -111,8 +111,10 @@ def collect(
       LockedError: another process is writing to the directory.
     """
     from envs.policies import get_policy
+    from envs.render import OBS_SIZE
     from envs.slither import SlitherParams, canonical_params
 
+    check_collection(num_episodes, max_steps, obs_size, seed, largest=OBS_SIZE)
     get_policy(policy)
     if isinstance(env_params, dict):
         params = SlitherParams(**env_params)

@@ -19,6 +19,7 @@ environment object and policy): atomic episode files, a manifest, resumable, loc
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib
 import importlib.util
@@ -30,13 +31,18 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cdrl.data.episode import Episode
-from cdrl.data.writer import Writer, write_set
+from cdrl.data.store import DatasetError
+from cdrl.data.writer import Writer, check_collection, write_set
 
 OBS_MODES = ("image", "render")
 POLICIES = ("uniform",)
 # Namespaces of gymnasium ids whose games a package registers when it is imported (gymnasium
 # 1.x loads no plugins by itself): namespace -> (the module to import, what to pip install).
 NAMESPACE_PACKAGES = {"ALE": ("ale_py", "ale-py")}
+
+
+class GameError(ValueError):
+    """A gymnasium game failed (made, reset or stepped): the message names the game and what it raised."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,6 +175,9 @@ def make_env(env_id: str, obs: str = "image", env_kwargs: dict | None = None):
         raise ValueError(f"gymnasium cannot make {env_id!r}: {exc}") from None
     except TypeError as exc:
         raise ValueError(f"gymnasium environment {env_id!r} does not take --env-kwargs {kwargs}: {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - a game's own constructor may raise anything on bad options
+        raise GameError(f"gymnasium cannot make {env_id!r} with --env-kwargs {kwargs}: "
+                        f"{type(exc).__name__}: {exc}") from None
     if obs == "render":
         if env.render_mode != "rgb_array":
             raise ValueError(f"{env_id} does not render RGB frames (render_mode {env.render_mode!r})")
@@ -201,8 +210,7 @@ def record_env(env_id: str, out_dir: str | Path, episodes: int, size: int = 64, 
     if policy not in POLICIES:
         raise ValueError(f"policy {policy!r} is for the built-in game; a gymnasium game records with "
                          f"{', '.join(POLICIES)}")
-    if size < 1 or episodes < 1:
-        raise ValueError(f"need size >= 1 and episodes >= 1; got size {size}, episodes {episodes}")
+    check_collection(episodes, max_steps, size, seed)
     env = make_env(env_id, obs, env_kwargs)
     try:
         codec = action_codec(env.action_space)
@@ -215,12 +223,33 @@ def record_env(env_id: str, out_dir: str | Path, episodes: int, size: int = 64, 
         def uniform(_obs, rng):
             return codec.sample(rng)
 
+        _probe(env, env_id, uniform, codec.decode, seed)
         return record_gym(
             env, out_dir, episodes, uniform, preprocess_kwargs={"crop": box, "out_size": (size, size)}, seed=seed,
             max_steps=max_steps, test_fraction=test_fraction, action_fn=codec.decode,
             config_extra={"env_kwargs": env_kwargs or {}, "obs": obs, "action_space": codec.space})
     finally:
         env.close()
+
+
+def _probe(env, env_id: str, policy_fn, action_fn, seed: int) -> None:
+    """One reset and one step of the game, before anything is written, so that a game that
+    fails on its options fails here, naming them (recording resets every episode anew)."""
+    with _game_errors(env_id, "its first reset and step"):
+        obs, _ = env.reset(seed=int(seed))
+        env.step(action_fn(np.asarray(policy_fn(obs, np.random.default_rng(0)), np.float32).reshape(-1)))
+
+
+@contextlib.contextmanager
+def _game_errors(env_id: str, what: str):
+    """Whatever the game raises in `what` as a `GameError` naming it (a game's own code may raise
+    anything; cdrl's errors pass through)."""
+    try:
+        yield
+    except (GameError, DatasetError):
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise GameError(f"gymnasium game {env_id!r} failed in {what}: {type(exc).__name__}: {exc}") from None
 
 
 def _check_crop(box: tuple[int, ...], height: int, width: int, size: int) -> None:
@@ -271,6 +300,7 @@ def record_gym(
     Returns:
       The manifest.
     """
+    check_collection(num_episodes, max_steps, seed=seed)
     kwargs = dict(preprocess_kwargs or {})
     spec = getattr(env, "spec", None)
     config = {
@@ -299,31 +329,39 @@ def _record(writer: Writer, env, policy_fn, kwargs: dict, seed: int, max_steps: 
             obs = obs[..., None]
         return np.round(preprocess(obs, **kwargs) * 255.0).astype(np.uint8)
 
+    spec = getattr(env, "spec", None)
+    name = spec.id if spec is not None else type(env.unwrapped).__name__
     for index in writer.missing:
-        rng = np.random.default_rng([int(seed), index])
-        obs, _ = env.reset(seed=int(seed) + index)
-        frames, actions, rewards = [], [], [0.0]
-        steps = 0
-        while True:
-            action = np.asarray(policy_fn(obs, rng), np.float32).reshape(-1)
-            frames.append(to_frame(obs))
-            actions.append(action)
-            if max_steps is not None and steps >= max_steps:
-                break
-            obs, reward, terminated, truncated, _ = env.step(
-                action if action_fn is None else action_fn(action)
-            )
-            steps += 1
-            if terminated or truncated:
-                frames.append(to_frame(obs))
-                actions.append(np.asarray(policy_fn(obs, rng), np.float32).reshape(-1))
-                rewards.append(float(reward))
-                break
-            rewards.append(float(reward))
-        episode = Episode(
-            frames=np.stack(frames),
-            actions=np.stack(actions).astype(np.float32),
-            rewards=np.asarray(rewards[:len(frames)], np.float32),
-        )
+        with _game_errors(name, f"episode {index}"):
+            episode = _play(env, policy_fn, to_frame, int(seed), index, max_steps, action_fn)
         writer.write(index, episode, compress)
         writer.flush()
+
+
+def _play(env, policy_fn, to_frame, seed: int, index: int, max_steps: int | None, action_fn) -> Episode:
+    """Episode `index` of a recording (see `record_gym`)."""
+    rng = np.random.default_rng([int(seed), index])
+    obs, _ = env.reset(seed=int(seed) + index)
+    frames, actions, rewards = [], [], [0.0]
+    steps = 0
+    while True:
+        action = np.asarray(policy_fn(obs, rng), np.float32).reshape(-1)
+        frames.append(to_frame(obs))
+        actions.append(action)
+        if max_steps is not None and steps >= max_steps:
+            break
+        obs, reward, terminated, truncated, _ = env.step(
+            action if action_fn is None else action_fn(action)
+        )
+        steps += 1
+        if terminated or truncated:
+            frames.append(to_frame(obs))
+            actions.append(np.asarray(policy_fn(obs, rng), np.float32).reshape(-1))
+            rewards.append(float(reward))
+            break
+        rewards.append(float(reward))
+    return Episode(
+        frames=np.stack(frames),
+        actions=np.stack(actions).astype(np.float32),
+        rewards=np.asarray(rewards[:len(frames)], np.float32),
+    )

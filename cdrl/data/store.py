@@ -125,9 +125,33 @@ def read_manifest(out_dir: Path) -> dict | None:
         manifest = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise DatasetError(f"manifest {path} is unreadable: {e}") from e
-    if manifest.get("format") != FORMAT_NAME:
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME:
         raise DatasetError(f"{path} is not a {FORMAT_NAME} manifest")
+    _check_entries(out_dir, manifest)
     return manifest
+
+
+def _check_entries(out_dir: Path, manifest: dict) -> None:
+    """Refuse a manifest whose episode list is malformed or names a file outside ``out_dir``:
+    an absolute path, a ``..`` part, or a symbolic link leading out of the directory. A data
+    set is a directory, and nothing outside it is read."""
+    path = out_dir / MANIFEST_NAME
+    entries, split = manifest.get("episodes"), manifest.get("split")
+    if not isinstance(entries, list) or not isinstance(split, dict):
+        raise DatasetError(f"manifest {path} has no episode list and split")
+    root = out_dir.resolve()
+    for entry in entries:
+        if not (isinstance(entry, dict) and isinstance(entry.get("index"), int) and isinstance(entry.get("file"), str)
+                and isinstance(entry.get("length"), int) and entry["length"] >= 0):
+            raise DatasetError(f"manifest {path}: episode entry {entry!r} is not an index, a file name and a length")
+        name = entry["file"]
+        relative = Path(name)
+        if relative.is_absolute() or ".." in relative.parts or not name or not (root / relative).resolve().is_relative_to(root):
+            raise DatasetError(f"manifest {path}: episode {entry['index']}'s file {name!r} is outside the data set "
+                               f"directory {out_dir}; a data set reads only files inside its directory")
+    for name in ("train", "test"):
+        if not (isinstance(split.get(name), list) and all(isinstance(i, int) for i in split[name])):
+            raise DatasetError(f"manifest {path}: its {name} split is not a list of episode indices")
 
 
 
@@ -178,6 +202,11 @@ class EpisodeDataset:
     def indices(self) -> list[int]:
         """Episode indices (as in the file names) of this split, in order."""
         return [int(e["index"]) for e in self._entries]
+
+    @property
+    def files(self) -> list[str]:
+        """Episode file names (inside the data set directory) of this split, in order."""
+        return [e["file"] for e in self._entries]
 
     @property
     def lengths(self) -> list[int]:

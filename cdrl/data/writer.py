@@ -136,6 +136,21 @@ def _config_diffs(old: dict, new: dict) -> list[str]:
     ]
 
 
+def check_collection(num_episodes, max_steps, obs_size=None, seed=0, largest: int | None = None) -> None:
+    """Refuse, before anything is written, numbers a collection cannot record: fewer than 1
+    episode, an episode step limit below 1 (None: the game ends its episodes), a frame side
+    below 1 (or above `largest`, the game's own frames; None: not chosen here), a negative seed. ValueError naming
+    the option (as `cdrl collect` spells it)."""
+    for option, value, low in (("--episodes", num_episodes, 1), ("--episode-steps", max_steps, 1),
+                               ("--obs-size", obs_size, 1), ("--seed", seed, 0)):
+        if value is None and option in ("--episode-steps", "--obs-size"):
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{option} must be an integer >= {low}, got {value!r}")
+    if largest is not None and obs_size is not None and obs_size > largest:
+        raise ValueError(f"--obs-size must be at most {largest}, the side of the game's frames; got {obs_size}")
+
+
 def _finished(out_dir: Path, config: dict) -> dict | None:
     """The manifest of ``out_dir`` if it holds a complete data set of ``config`` (checked
     without the lock and without writing anything, so readers can use it)."""
