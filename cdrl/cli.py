@@ -18,6 +18,13 @@ from cdrl.runs.sweep import GRID_FIELDS
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
 _TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations (bool: --x/--no-x)
+# What a command reports as its error (a message, exit 2) rather than a traceback: bad input
+# (ValueError, its DatasetError and DataChangedError), files (OSError), and runs and
+# checkpoints that cannot go on (RuntimeError: CheckpointError, DivergenceError, LockedError).
+USER_ERRORS = (ValueError, OSError, RuntimeError)
+ALLOW_DATA_CHANGE_HELP = ("with --resume: go on although the data set changed since the run began (the run's "
+                          "data.json records the change and the step); without it such a resume is refused, "
+                          "naming what changed")
 DISTRIBUTED_HELP = ("join the processes of a multi-process run with jax.distributed (every process runs this same "
                     "command): from JAX_COORDINATOR_ADDRESS (host:port of process 0), JAX_NUM_PROCESSES and "
                     "JAX_PROCESS_ID, or a cluster JAX detects (SLURM's srun); the {what} spread over every device "
@@ -67,17 +74,24 @@ def _distributed(args, options: dict) -> bool:
     return joined["process"] == 0
 
 
+def _check_allow_data_change(args) -> None:
+    if args.allow_data_change and not args.resume:
+        raise ValueError("--allow-data-change is for --resume: a new run records the data it starts with")
+
+
 def _cmd_train(args) -> int:
     from cdrl.runs.train import train_run
 
     options = _options(args)
     try:
+        _check_allow_data_change(args)
         prints = _distributed(args, options)
         if args.resume:
-            summary = train_run(None, args.resume, resume=True, overrides=options)
+            summary = train_run(None, args.resume, resume=True, overrides=options,
+                                allow_data_change=args.allow_data_change)
         else:
             summary = train_run(RunConfig(**options), args.run_dir)
-    except (ValueError, OSError, RuntimeError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl train: {exc}", file=sys.stderr)
         return 2
     if prints:
@@ -93,12 +107,13 @@ def _cmd_sweep(args) -> int:
     run_dir = args.resume or args.run_dir
     options = _options(args) if args.resume else _options(args, skip=GRID_FIELDS)
     try:
+        _check_allow_data_change(args)
         prints = _distributed(args, options)
         if args.resume:
-            rows = resume_sweep(args.resume, overrides=options)
+            rows = resume_sweep(args.resume, overrides=options, allow_data_change=args.allow_data_change)
         else:
             rows = sweep_run(RunConfig(**options), Grid(**grid), args.run_dir)
-    except (ValueError, OSError, RuntimeError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl sweep: {exc}", file=sys.stderr)
         return 2
     if not prints:
@@ -115,7 +130,7 @@ def _cmd_lr_search(args) -> int:
     try:
         result = lr_search(RunConfig(**_options(args, skip=("lr", "steps", "diverge_threshold"))),
                            args.candidates, args.probe_steps, args.threshold)
-    except (ValueError, FileNotFoundError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl lr-search: {exc}", file=sys.stderr)
         return 2
     for c in result["candidates"]:
@@ -141,7 +156,7 @@ def _cmd_eval(args) -> int:
 
     try:
         rows = eval_runs([Path(p) for p in args.run_dirs], episodes=args.episodes)
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl eval: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(rows))
@@ -154,7 +169,7 @@ def _cmd_eval_policy(args) -> int:
 
     try:
         rows = eval_policy_run(Path(args.policy), episodes=args.episodes)
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl eval: {exc}", file=sys.stderr)
         return 2
     print(format_table(rows))
@@ -168,7 +183,7 @@ def _cmd_plot(args) -> int:
     try:
         written = plot_runs([Path(p) for p in args.run_dirs], out_dir=Path(args.out) if args.out else None,
                             groups=args.groups)
-    except (ValueError, FileNotFoundError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl plot: {exc}", file=sys.stderr)
         return 2
     for path in written:
@@ -191,7 +206,7 @@ def _cmd_collect(args) -> int:
                     raise ValueError(f"--{name.replace('_', '-')} is for a gymnasium game (--env ID)")
             collect(Path(args.out), args.episodes, policy=args.policy or "behaviour", seed=args.seed,
                     max_steps=args.episode_steps, obs_size=args.obs_size)
-    except (ValueError, OSError, RuntimeError) as exc:
+    except USER_ERRORS as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
         return 2
     print(args.out)
@@ -216,6 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--resume", metavar="RUN_DIR", default=None,
                        help="continue the run in RUN_DIR from its last good checkpoint (default: none)")
     train.add_argument("--distributed", action="store_true", help=DISTRIBUTED_HELP.format(what="B streams"))
+    train.add_argument("--allow-data-change", action="store_true", help=ALLOW_DATA_CHANGE_HELP)
     _add_config_options(train)
     train.set_defaults(func=_cmd_train)
 
@@ -226,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "--checkpoint-every, --keep-checkpoints, --eval-every, --eval-episodes, --devices, "
                          "--tensorboard may change (default: none)")
     sw.add_argument("--distributed", action="store_true", help=DISTRIBUTED_HELP.format(what="configurations"))
+    sw.add_argument("--allow-data-change", action="store_true", help=ALLOW_DATA_CHANGE_HELP)
     _add_config_options(sw, several=GRID_FIELDS)
     sw.set_defaults(func=_cmd_sweep)
 

@@ -511,7 +511,7 @@ BAD_CLI = {
     "unknown variant": (lambda t: ["train", "--variant", "nope"], "unknown variant 'nope'"),
     "unknown preset": (lambda t: ["train", "--preset", "huge"], "unknown architecture preset 'huge'"),
     "zero unroll": (lambda t: ["train", "--unroll", "0"], "unroll must be >= 1, got 0"),
-    "negative lr": (lambda t: ["train", "--lr", "-1"], "need lr > 0"),
+    "negative lr": (lambda t: ["train", "--lr", "-1"], "lr must be > 0, got -1.0"),
     "unknown optimiser": (lambda t: ["train", "--optimizer", "adagrad"], "optimizer must be one of sgd"),
     "unknown level": (lambda t: ["train", "--level", "lava"], "level must be one of thesis"),
     "bad game parameter": (lambda t: ["train", "--env", "gravity=1"], "bad game parameter 'gravity=1'"),

@@ -261,6 +261,8 @@ def plot_runs(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None,
         except CheckpointError as exc:
             raise ValueError(f"{run.path}: {exc}") from None
     out = Path(out_dir) if out_dir is not None else RunDir(runs[0].path).plots_dir
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"the figures' directory {out} is a file")
     out.mkdir(parents=True, exist_ok=True)
 
     written = [save_figure(loss_figure(runs), out / "loss.png"),

@@ -8,14 +8,13 @@ episodes; `eval_runs(dirs)` does all three for several runs and prints a table.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import jax
 import numpy as np
 
-from cdrl.evaluation.metrics import evaluate, prefixed
+from cdrl.evaluation.metrics import check_episodes, evaluate, prefixed
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
@@ -93,9 +92,7 @@ def restore_model(run: Run) -> Model:
     # The abstract shape of a state is all a restore needs; tracing it is much cheaper than
     # initialising one eagerly.
     like = jax.eval_shape(lambda: init_state(variant, jax.random.PRNGKey(0), cfg.batch, hp))
-    state, meta, warnings = RunDir(run.path).read_checkpoints().restore_latest_good(like)
-    for warning in warnings:
-        print(f"warning: {warning}; using an older checkpoint", file=sys.stderr)
+    state, meta = RunDir(run.path).read_checkpoints().restore_newest(like)
     return Model(variant=variant, params=state.params, step=int(meta["step"]))
 
 
@@ -128,8 +125,7 @@ def evaluate_model(run: Run, model: Model, episodes: int, data: tuple[list, list
     MSE where the variant has one) on `episodes` training and `episodes` held-out episodes (`data`, default
     `run_episodes(run, episodes)`), plus the final training loss (running average over the
     last 4096 samples). Missing numbers are None."""
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    check_episodes(episodes)
     train, test = data if data is not None else run_episodes(run, episodes)
     row: dict[str, Any] = {"run": run.name, "path": str(run.path), "variant": run.config.variant, "steps": model.step}
     for split, eps in (("train", train), ("test", test)):
@@ -174,6 +170,7 @@ def format_table(rows: list[dict]) -> str:
 def eval_runs(run_dirs: Sequence[str | Path], episodes: int | None = None) -> list[dict]:
     """Evaluate each run's latest good checkpoint on its held-out episodes (default: the run's
     `eval_episodes`) and on as many training episodes; print a table; return the rows."""
+    check_episodes(episodes)
     runs = [load_run(d) for d in run_dirs]
     rows = []
     for run in runs:

@@ -22,6 +22,14 @@ from cdrl.data.stream import Chunk
 from cdrl.models.base import Variant, code_prediction_errors
 from cdrl.training.step import step_inputs
 
+
+def check_episodes(episodes: int | None) -> None:
+    """Refuse an evaluation's number of episodes (or games; None: the run's own) below 1,
+    before any work."""
+    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1):
+        raise ValueError(f"episodes must be >= 1, got {episodes!r}")
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def eval_chunk_stats(variant: Variant, params, carry, chunk: Chunk):
     """Per-step statistics `[T, B]` of one chunk: model BCE, copy BCE, code error."""

@@ -13,6 +13,7 @@ whatever the recipes become.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
@@ -144,10 +145,8 @@ class RunConfig:
         if self.lr_schedule == "cosine" and self.lr_decay_steps == 0:
             object.__setattr__(self, "lr_decay_steps", self.steps)
         preset(self.preset)
-        for name in ("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
-                     "action_dim", "ppo_epochs", "ppo_minibatches", "replay", "model_updates", "horizon"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for f in dataclasses.fields(self):
+            check_value(f.name, f.type, getattr(self, f.name))
         # The game's package is imported here, not with this module: `cdrl train --distributed`
         # must start jax.distributed before anything touches a JAX backend.
         from envs.slither import LEVELS
@@ -157,16 +156,12 @@ class RunConfig:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
-        if self.lr <= 0 or not 0 <= self.momentum < 1 or not 0 <= self.b2 < 1:
-            raise ValueError(f"need lr > 0, 0 <= momentum < 1 and 0 <= b2 < 1; got lr={self.lr}, "
-                             f"momentum={self.momentum}, b2={self.b2}")
-        for name in ("weight_decay", "grad_clip", "lr_warmup", "lr_decay_steps", "devices"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not self.diverge_threshold > 0:
-            raise ValueError(f"diverge_threshold must be > 0, got {self.diverge_threshold}")
-        if not self.obs_std > 0 or not self.fc_init_gain > 0:
-            raise ValueError(f"obs_std and fc_init_gain must be > 0; got {self.obs_std} and {self.fc_init_gain}")
+        if self.kind == "offline" and self.data != "game":
+            for name, default in (("env", ""), ("level", "thesis")):
+                if getattr(self, name) != default:
+                    raise ValueError(f"{name} {getattr(self, name)!r} sets the built-in game, which a run on data "
+                                     f"{self.data!r} never plays (it trains on recorded episodes); drop it, or "
+                                     "train on data 'game'")
 
     def recipe_values(self) -> dict[str, object]:
         """The options the run's recipe sets for its variant."""
@@ -199,6 +194,60 @@ class RunConfig:
     def hparams(self, variant: Variant) -> HParams:
         """The traced hyper-parameters of offline training."""
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold)
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The values a numeric option may take: finite numbers from `low` to `high` (None: no
+    bound), each end included unless it is open."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+    def __contains__(self, value) -> bool:
+        return ((self.low is None or (value > self.low if self.low_open else value >= self.low))
+                and (self.high is None or (value < self.high if self.high_open else value <= self.high)))
+
+    def describe(self, name: str) -> str:
+        """The range as a condition on option `name`: 'steps >= 1', '0 <= b2 < 1'."""
+        if self.high is None:
+            return f"{name} {'>' if self.low_open else '>='} {self.low:g}"
+        return f"{self.low:g} {'<' if self.low_open else '<='} {name} {'<' if self.high_open else '<='} {self.high:g}"
+
+
+AT_LEAST_1, AT_LEAST_0, ABOVE_0 = Range(1), Range(0), Range(0, low_open=True)
+FRACTION, BELOW_1 = Range(0, 1), Range(0, 1, high_open=True)
+# The range of every numeric option (a float field not listed takes any finite value). Every
+# number must be finite: config.json holds JSON, which has no NaN or infinity.
+RANGES: dict[str, Range] = {
+    **dict.fromkeys(("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
+                     "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
+                     "horizon"), AT_LEAST_1),
+    **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",
+                     "grad_clip", "ascent", "reward_weight", "noise_std", "value_coef", "entropy_coef"), AT_LEAST_0),
+    **dict.fromkeys(("lr", "obs_std", "fc_init_gain", "diverge_threshold", "ctrl_lr", "clip_eps"), ABOVE_0),
+    **dict.fromkeys(("momentum", "b2"), BELOW_1),
+    **dict.fromkeys(("gamma", "gae_lambda"), FRACTION),
+    "noise_decay": Range(0, 1, low_open=True),
+}
+_KINDS = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+
+
+def check_value(name: str, kind: str, value) -> None:
+    """Refuse (ValueError naming the option) a value of option `name` (of type `kind`: a
+    RunConfig field's annotation) of the wrong type, not finite, or outside `RANGES`."""
+    if not isinstance(value, _KINDS[kind]) or (kind != "bool" and isinstance(value, bool)):
+        raise ValueError(f"{name} must be {'an' if kind == 'int' else 'a'} {kind}, got {value!r}")
+    if kind not in ("int", "float"):
+        return
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r} (a run's config.json holds JSON numbers)")
+    if name in RANGES and value not in RANGES[name]:
+        condition = RANGES[name].describe(name)
+        raise ValueError(f"{condition.replace(name, name + ' must be', 1) if condition.startswith(name) else 'need ' + condition}"
+                         f", got {value!r}")
 
 
 def saved_config(saved: dict) -> RunConfig:

@@ -21,6 +21,7 @@ import sys
 import jax
 import numpy as np
 
+from cdrl.data.fingerprint import fingerprint
 from cdrl.data.stream import ChunkStream
 from cdrl.evaluation.metrics import evaluate
 from cdrl.models import make_variant
@@ -87,23 +88,30 @@ class OfflineJob(TrainJob):
         return str(self.ckpts.directory / str(step))
 
 
-def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
+def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None,
+                      allow_data_change: bool = False) -> dict:
+    """Train (or resume) the offline run of `cfg` in `run`. Its data is checked, and on a
+    resume compared with the fingerprint the run recorded (`RunDir.check_data`), before
+    anything is written."""
     parallel = DataParallel.create(cfg.devices, cfg.batch)
     writes = is_primary()
 
     def prepare():
         train_eps, test_eps = load_episodes(cfg, run.data_cache)
         verify_data(cfg, train_eps, test_eps)
-        return train_eps, test_eps, cfg if resume else with_obs_norm(with_data_dims(cfg, train_eps), run.data_cache)
+        data = fingerprint(train_eps, test_eps)
+        return (train_eps, test_eps, data,
+                cfg if resume else with_obs_norm(with_data_dims(cfg, train_eps), run.data_cache))
 
-    train_eps, test_eps, cfg = primary_first(prepare, "loading the run's data")  # a game's data is collected once
+    # a game's data is collected once
+    train_eps, test_eps, data, cfg = primary_first(prepare, "loading the run's data")
     variant = make_variant(cfg.variant, cfg.arch)
     stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size,
                          action_dim=cfg.arch.action_dim, seed=cfg.seed)
     state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, cfg.hparams(variant))
     if parallel is not None:
         state = parallel.place_state(state)
-    opened = run.open(cfg, state, resume, write=writes)
+    opened = run.open(cfg, state, resume, write=writes, data=data, allow_data_change=allow_data_change)
     if opened.meta is not None:
         stream.load_state_dict(opened.meta["stream"])
     job = OfflineJob(cfg, variant, stream, test_eps, opened.state, opened.checkpoints, parallel, writes)

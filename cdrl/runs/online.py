@@ -22,7 +22,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from cdrl.evaluation.metrics import excess_ratio
+from cdrl.evaluation.metrics import check_episodes, excess_ratio
 from cdrl.evaluation.play import EVAL_SEED, compare_policies, controller_policy, format_table
 from cdrl.models import make_variant
 from cdrl.runs.checkpoint import Checkpoints
@@ -167,9 +167,11 @@ def model_params(state):
     raise TypeError(f"{type(state).__name__} holds no world model")
 
 
-def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None) -> dict:
+def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None,
+                     allow_data_change: bool = False) -> dict:
     """A controller variant, or PPO, trained against the game in `run`; ends with the policy
-    table on stderr."""
+    table on stderr. (It plays the game: there is no data set to change, so
+    `allow_data_change` has nothing to allow.)"""
     if not resume:
         cfg = with_obs_norm(cfg, run.data_cache)
     program = learner(cfg)
@@ -193,9 +195,7 @@ def restore_learner(run: RunDir) -> tuple[RunConfig, Learner, Any]:
     if cfg.kind == "offline":
         raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
     program = learner(cfg)
-    state, _, warnings = run.read_checkpoints().restore_latest_good(jax.eval_shape(lambda: program.fresh(cfg.seed)))
-    for w in warnings:
-        print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+    state, _ = run.read_checkpoints().restore_newest(jax.eval_shape(lambda: program.fresh(cfg.seed)))
     return cfg, program, state
 
 
@@ -203,6 +203,7 @@ def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL
     """`cdrl eval --policy RUN_DIR`: the run's learned policy (latest good checkpoint, no noise:
     a controller, or PPO's greedy policy) against the reference policies on the same held-out
     games."""
+    check_episodes(episodes)
     run = RunDir(run_dir)
     cfg, program, state = restore_learner(run)
     return program.job(cfg, run.read_checkpoints(), state).play(state, episodes, seed)

@@ -1,6 +1,8 @@
 """The run directory: one place that knows what a run writes and how.
 
     config.json       the full resolved `RunConfig`
+    data.json         the fingerprint of the episodes it trains on (`cdrl.data.fingerprint`),
+                      checked when it resumes, and the changes a resume was allowed to take
     metrics.jsonl     one record per training step (loss, terms, norm ratios, frames/s)
     eval.jsonl        held-out evaluations (or policy comparisons for controller runs)
     checkpoints/      orbax checkpoints (`cdrl.runs.checkpoint`)
@@ -20,10 +22,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
+from cdrl.data import fingerprint
 from cdrl.data.atomic import atomic_write_text  # noqa: F401  (re-exported: how a run's files are written)
 from cdrl.data.lock import DirLock
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
@@ -45,11 +47,15 @@ class RunLog:
         records = []
         for i, line in enumerate(lines):
             try:
-                records.append(json.loads(line))
+                record = json.loads(line)
             except json.JSONDecodeError as exc:
                 if i == len(lines) - 1:
                     break
                 raise ValueError(f"{self.path}: line {i + 1} is not valid JSON ({exc})") from None
+            if not (isinstance(record, dict) and isinstance(record.get("step"), int)):
+                raise ValueError(f"{self.path}: line {i + 1} is not a record of a step (a JSON object with an "
+                                 "integer 'step')")
+            records.append(record)
         return records
 
     def truncate(self, before_step: int) -> None:
@@ -82,6 +88,10 @@ def _check_compatible(cfg: RunConfig):
     return check
 
 
+class DataChangedError(ValueError):
+    """The episodes a resumed run would train on are not those it started with."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Opened:
     """A run ready to train: its state (restored when resuming), the step to start from, the
@@ -99,6 +109,7 @@ class RunDir:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.config_path = self.path / "config.json"
+        self.data_path = self.path / "data.json"
         self.metrics = RunLog(self.path / "metrics.jsonl")
         self.evals = RunLog(self.path / "eval.jsonl")
         self.checkpoint_dir = self.path / "checkpoints"
@@ -132,7 +143,42 @@ class RunDir:
 
     def write_config(self, cfg: RunConfig) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(self.config_path, json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+        try:
+            text = json.dumps(dataclasses.asdict(cfg), indent=2, allow_nan=False)
+        except ValueError:
+            raise ValueError(f"the config of {self.path} holds a number that is not finite; config.json holds "
+                             "JSON numbers only") from None
+        atomic_write_text(self.config_path, text + "\n")
+
+    def check_data(self, data: dict, allow_change: bool = False) -> list[str]:
+        """How the fingerprint `data` of the episodes a resume would train on differs from the
+        one in data.json (nothing: the run kept none). A change raises `DataChangedError`
+        naming it, unless `allow_change`; then the changes are returned, for `write_data`."""
+        if not self.data_path.is_file():
+            return []
+        try:
+            saved = json.loads(self.data_path.read_text())["fingerprint"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{self.data_path} is not a valid data fingerprint ({exc}); remove it to record the "
+                             "data afresh") from None
+        changed = fingerprint.changes(saved, data)
+        if changed and not allow_change:
+            raise DataChangedError(
+                f"the data of run {self.path} changed since the run recorded it in {self.data_path}: "
+                f"{'; '.join(changed)}. Resuming would train on other episodes than the run did; resume with "
+                "--allow-data-change to go on with the changed data (recorded in data.json)")
+        return changed
+
+    def write_data(self, data: dict, step: int, changed: list[str], fresh: bool = False) -> None:
+        """Record `data` as the fingerprint of the run's episodes from `step` on (`fresh`: a new
+        run); `changed`: how it differs from the one before (a resume allowed to change them)."""
+        known = self.data_path.is_file() and not fresh
+        if known and not changed:
+            return
+        history = json.loads(self.data_path.read_text()).get("changes", []) if known else []
+        if changed:
+            history.append({"step": step, "allowed": "--allow-data-change", "changes": changed})
+        atomic_write_text(self.data_path, json.dumps({"fingerprint": data, "changes": history}, indent=1) + "\n")
 
     def config_for(self, cfg: RunConfig | None, resume: bool, overrides: dict | None = None) -> RunConfig:
         """The config a `train` of this directory runs with: `cfg` for a new run (refused if
@@ -156,19 +202,24 @@ class RunDir:
         """The run's checkpoints for reading only, safe beside a writer that is still training."""
         return Checkpoints(self.checkpoint_dir, read_only=True)
 
-    def open(self, cfg: RunConfig, state, resume: bool, write: bool = True) -> Opened:
+    def open(self, cfg: RunConfig, state, resume: bool, write: bool = True, data: dict | None = None,
+             allow_data_change: bool = False) -> Opened:
         """Write the config and, when resuming, restore `state` from the last good checkpoint
-        (an older one if the newest is corrupt) and cut the logs back to it. With several
-        processes every one restores and only the one that writes (`write`) touches files."""
+        (an older one if the newest is corrupt) and cut the logs back to it. `data`: the
+        fingerprint of the episodes the run trains on (None: it plays the game), recorded in
+        data.json; a resume whose data changed is refused before anything is written, unless
+        `allow_data_change`. With several processes every one restores and only the one that
+        writes (`write`) touches files."""
+        changed = self.check_data(data, allow_data_change) if resume and data is not None else []
         ckpts = self.checkpoints(cfg.keep_checkpoints)
         start, meta = 0, None
         if resume and ckpts.steps():
-            state, meta, warnings = ckpts.restore_latest_good(state, check_meta=_check_compatible(cfg))
-            for w in warnings if write else ():
-                print(f"warning: {w}; using an older checkpoint", file=sys.stderr)
+            state, meta = ckpts.restore_newest(state, check_meta=_check_compatible(cfg), say=write)
             start = int(meta["step"])
         if write:
             self.write_config(cfg)
+            if data is not None:
+                self.write_data(data, start, changed, fresh=not resume)
             self.metrics.truncate(start)
             self.evals.truncate(start + 1)
         return Opened(state=state, start=start, meta=meta, checkpoints=ckpts)

@@ -82,12 +82,27 @@ def with_data_dims(cfg: RunConfig, train) -> RunConfig:
 
 
 def verify_data(cfg: RunConfig, train, test) -> None:
-    """Check, before the first step, every episode file of the splits a run uses when its
-    data is a data set directory (the built-in game's cached data included): readable,
-    CRCs intact, shapes, dtypes and lengths as the manifest says, frames of the preset's
-    size. Raises `store.DatasetError` naming the first bad file."""
+    """Check, before the first step and before anything is written, what a run's data must
+    be: training and held-out episodes present (an empty held-out split would fail only the
+    evaluation after training), every episode at least 2 frames long (one transition); for a
+    data set directory (the built-in game's cached data included) every episode file of the
+    splits: readable, CRCs intact, shapes, dtypes and lengths as the manifest says, frames
+    of the preset's size. Raises `store.DatasetError` naming the first problem."""
     size = cfg.arch.image_size
-    for split in (train, test):
+    for name, split in (("training", train), ("held-out", test)):
+        where = f"data set {split.path}" if isinstance(split, store.EpisodeDataset) else f"the run's {cfg.data} data"
+        if len(split) == 0:
+            how = (f" (its test split is empty: {split.manifest['config'].get('num_episodes')} episodes, test "
+                   f"fraction {split.manifest['config'].get('test_fraction')}; record more episodes)"
+                   if isinstance(split, store.EpisodeDataset) and name == "held-out" else "")
+            raise store.DatasetError(f"{where} holds no {name} episodes{how}: a run needs both")
+        lengths = split.lengths if isinstance(split, store.EpisodeDataset) else [len(e) for e in split]
+        short = [i for i, n in enumerate(lengths) if n < 2]
+        if short:
+            which = (f"episode file {split.path / split.files[short[0]]}" if isinstance(split, store.EpisodeDataset)
+                     else f"{name} episode {short[0]}")
+            raise store.DatasetError(f"{which} of {where} has {lengths[short[0]]} frame(s); at least 2 are needed "
+                                     f"for one transition ({len(short)} such episode(s) in the {name} split)")
         if not isinstance(split, store.EpisodeDataset):
             continue
         shape = split.manifest.get("data", {}).get("frame_shape")

@@ -36,6 +36,7 @@ from typing import Sequence
 import jax
 import numpy as np
 
+from cdrl.data.fingerprint import fingerprint
 from cdrl.evaluation.metrics import evaluate, prefixed
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
@@ -73,21 +74,25 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
             raise FileExistsError(f"{run_dir} already holds a sweep; continue it with `cdrl sweep --resume {run_dir}` "
                                   "or pick another --run-dir")
         _check_grid(make_variant(base.variant, base.arch))
+        grid.configs(base)  # every configuration's values are checked (`RunConfig`) before anything is written
 
     all_or_none(check, "starting the sweep")  # every process checks before any writes
     with _locked(run_dir, grid, base):
         return _sweep_run(base, grid, run_dir, progress, resume=False)
 
 
-def resume_sweep(run_dir: str | Path, overrides: dict | None = None, progress: bool | None = None) -> list[dict]:
+def resume_sweep(run_dir: str | Path, overrides: dict | None = None, progress: bool | None = None,
+                 allow_data_change: bool = False) -> list[dict]:
     """Continue the sweep in `run_dir` from its last complete checkpoint (`cdrl sweep
     --resume`): every configuration's state and data cursor from its own run directory, the
-    diverged ones stopped; `overrides` may change only the resumable options (`steps`, ...)."""
+    diverged ones stopped; `overrides` may change only the resumable options (`steps`, ...).
+    A configuration whose data changed since the sweep began stops the resume before anything
+    is written (`RunDir.check_data`), unless `allow_data_change`."""
     run_dir = Path(run_dir)
     base, grid = all_or_none(lambda: read_sweep(run_dir, overrides), "reading the sweep")
     grid = Grid(**{k: tuple(v) for k, v in grid.items()})
     with _locked(run_dir, grid, base):
-        return _sweep_run(base, grid, run_dir, progress, resume=True)
+        return _sweep_run(base, grid, run_dir, progress, resume=True, allow_data_change=allow_data_change)
 
 
 def _locked(run_dir: Path, grid: Grid, base: RunConfig) -> contextlib.ExitStack:
@@ -151,7 +156,8 @@ class SweepRunJob(SweepJob):
         return None
 
 
-def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None, resume: bool) -> list[dict]:
+def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None, resume: bool,
+               allow_data_change: bool = False) -> list[dict]:
     cfgs = grid.configs(base)
     axis = ConfigAxis.create(base.devices, len(cfgs))
     mine = [i for i in axis.local if i < len(cfgs)]  # the configurations this process holds
@@ -167,13 +173,15 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
         return episodes, resolved  # one architecture for every seed
 
     episodes, base = primary_first(prepare, "loading the sweep's data")  # a game's data is collected once
+    data = {seed: fingerprint(*pair) for seed, pair in episodes.items()}
     cfgs = grid.configs(base)
     run_cfgs = [dataclasses.replace(c, devices=1) for c in cfgs]  # each configuration trains on one device
     variant = make_variant(base.variant, base.arch)
+    runs = [RunDir(run_dir / grid.name(c)) for c in cfgs]
+    changed = {i: runs[i].check_data(data[cfgs[i].seed], allow_data_change) if resume else [] for i in mine}
     if is_primary():
         write_sweep(run_dir, base, dataclasses.asdict(grid))
     streams = make_streams(held_configs(cfgs, axis), lambda c: episodes[c.seed][0])
-    runs = [RunDir(run_dir / grid.name(c)) for c in cfgs]
     ckpts = [run.checkpoints(max(SWEEP_KEEP, c.keep_checkpoints), primary=axis.owner(i))
              for i, (c, run) in enumerate(zip(cfgs, runs))]
     done = read_progress(run_dir, len(cfgs)) if resume else {"step": 0, "alive": [True] * len(cfgs), "diverged": {}}
@@ -195,6 +203,7 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
             runs[i].evals.truncate(0)
     for i in mine:
         runs[i].write_config(run_cfgs[i])
+        runs[i].write_data(data[cfgs[i].seed], start, changed[i], fresh=not resume)
     states, alive = job.init(resumed)
     sinks = [RunWriter(runs[i], start, cfgs[i].tensorboard) if i < len(cfgs) else NullSink() for i in axis.local]
     plan = Plan(steps=base.steps, start=start, eval_every=base.eval_every, checkpoint_every=base.checkpoint_every,
@@ -270,11 +279,13 @@ def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, th
     (`chosen`, None if none does) and, per candidate, the largest ratio seen and, for the
     rejected ones, the step and parameter group that rejected them. Kernels are watched,
     not biases (see `cdrl.training.step.watched_groups`). Game data is cached under `data_cache`."""
+    if not candidates or not all(math.isfinite(c) and c > 0 for c in candidates):
+        raise ValueError(f"the learning-rate candidates must be finite numbers > 0, got {list(candidates)}")
     candidates = sorted({float(c) for c in candidates}, reverse=True)
     if probe_steps < 1:
         raise ValueError(f"probe_steps must be >= 1, got {probe_steps}")
-    if not threshold > 0:
-        raise ValueError(f"threshold must be > 0, got {threshold}")
+    if not (math.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"threshold must be a finite number > 0, got {threshold}")
     _check_grid(make_variant(base.variant, base.arch))
     train_eps, _ = load_episodes(base, Path(data_cache))
     base = with_obs_norm(with_data_dims(dataclasses.replace(base, steps=probe_steps, diverge_threshold=threshold),

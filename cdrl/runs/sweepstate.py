@@ -43,7 +43,7 @@ SWEEP_KEEP = 2  # checkpoints kept per configuration at least (see the module do
 
 def write_sweep(run_dir: Path, base: RunConfig, grid: dict) -> None:
     atomic_write_text(run_dir / SWEEP_FILE, json.dumps(
-        {"base": dataclasses.asdict(base), "grid": grid}, indent=2) + "\n")
+        {"base": dataclasses.asdict(base), "grid": grid}, indent=2, allow_nan=False) + "\n")
 
 
 def read_sweep(run_dir: Path, overrides: dict | None = None) -> tuple[RunConfig, dict]:

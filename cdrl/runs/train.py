@@ -16,9 +16,11 @@ from cdrl.runs.rundir import RunDir
 
 
 def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, overrides: dict | None = None,
-              progress: bool | None = None) -> dict:
+              progress: bool | None = None, allow_data_change: bool = False) -> dict:
     """Train (or resume: the saved config, with `overrides` of the resumable options) the run
-    in `run_dir`; returns a summary dict. A diverging run raises a `RuntimeError` naming the
+    in `run_dir`; returns a summary dict. A resume whose data set changed since the run began
+    raises `DataChangedError` naming the change, unless `allow_data_change` (recorded in the
+    run's data.json). A diverging run raises a `RuntimeError` naming the
     step and the parameter group, after saving the last good state. The run directory is
     locked for the whole run: a second writer gets `LockedError` naming this process's pid."""
     run = RunDir(run_dir)
@@ -37,4 +39,4 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
             raise ValueError(f"devices={resolved.devices}: controller variants and ppo train online on one device "
                              "(data-parallel training covers the offline variants); use --devices 1")
         runs = {"offline": offline_train_run, "online": online_train_run, "ppo": online_train_run}
-        return runs[resolved.kind](resolved, run, resume, progress)
+        return runs[resolved.kind](resolved, run, resume, progress, allow_data_change)
