@@ -132,7 +132,7 @@ class RunDir:
         """The run's config. FileNotFoundError if the directory does not exist, ValueError if
         it holds no run or its config.json is not a valid one."""
         if not self.path.is_dir():
-            raise FileNotFoundError(f"run directory {self.path} does not exist")
+            raise FileNotFoundError(f"run directory {self.path} {'is a file' if self.path.exists() else 'does not exist'}")
         if not self.config_path.is_file():
             raise ValueError(f"{self.path} is not a run directory: it has no config.json "
                                     "(make one with `cdrl train --run-dir`)")

@@ -47,7 +47,7 @@ from cdrl.runs.grid import (GRID_FIELDS, Grid, SweepJob, held_configs, init_swee
 from cdrl.runs.rundir import RunDir, atomic_write_text
 from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, gather_progress, read_progress, read_sweep,
-                                  restore_configs, save_configs, write_progress, write_sweep)
+                                  restore_configs, resume_point, save_configs, write_progress, write_sweep)
 from cdrl.runs.tboard import prediction_image
 from cdrl.runs.writer import RunWriter
 from cdrl.training.loop import NullSink, Plan, Sink, host_loop
@@ -185,6 +185,8 @@ def _sweep_run(base: RunConfig, grid: Grid, run_dir: Path, progress: bool | None
     ckpts = [run.checkpoints(max(SWEEP_KEEP, c.keep_checkpoints), primary=axis.owner(i))
              for i, (c, run) in enumerate(zip(cfgs, runs))]
     done = read_progress(run_dir, len(cfgs)) if resume else {"step": 0, "alive": [True] * len(cfgs), "diverged": {}}
+    if done["step"] > 0:  # an older step if a checkpoint it needs is corrupt
+        done = resume_point(ckpts, done, range(len(cfgs)) if jax.process_count() > 1 else mine)
     start = int(done["step"])
     job = SweepRunJob(variant, cfgs, run_cfgs, streams, base.steps, axis, runs, ckpts, episodes,
                       {i: d for i, d in done["diverged"].items() if i in mine})

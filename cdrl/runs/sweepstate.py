@@ -11,7 +11,9 @@ seed's data-stream cursor, all at the same step), and only then rewrites `progre
 before, whose checkpoints every configuration still has: a sweep keeps at least two
 (`SWEEP_KEEP`). A configuration that diverged keeps the checkpoint of its last good state (saved at
 the next checkpoint step; the state stays frozen until then) and stays stopped when the sweep
-resumes.
+resumes. A checkpoint that fails its checksums (`cdrl.runs.checksums`) makes the resume fall
+back to the newest step at which every configuration has a good one (`resume_point`), named
+in one line per corrupt checkpoint.
 
 With several processes (`cdrl sweep --distributed`) every checkpoint is a collective orbax
 save: orbax writes global arrays only (it refuses arrays that live in one process of several,
@@ -24,12 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Sequence
 
 import jax
 
-from cdrl.runs.checkpoint import CheckpointError, Checkpoints
+from cdrl.runs.checkpoint import CheckpointError, Checkpoints, CorruptCheckpointError
 from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
 from cdrl.runs.distributed import allgather_json
 from cdrl.runs.grid import take
@@ -51,7 +54,7 @@ def read_sweep(run_dir: Path, overrides: dict | None = None) -> tuple[RunConfig,
     `run_dir`. FileNotFoundError / ValueError naming what is missing or refused."""
     path = run_dir / SWEEP_FILE
     if not run_dir.is_dir():
-        raise FileNotFoundError(f"sweep directory {run_dir} does not exist")
+        raise FileNotFoundError(f"sweep directory {run_dir} {'is a file' if run_dir.exists() else 'does not exist'}")
     if not path.is_file():
         raise ValueError(f"{run_dir} is not a sweep directory: it has no {SWEEP_FILE} (start one with `cdrl sweep`)")
     try:
@@ -109,6 +112,51 @@ def save_configs(checkpoints: Sequence[Checkpoints], saves: Sequence[tuple[int, 
     metas = {i: meta for i, _, meta in saves}
     for i, step in sorted(tuple(pair) for part in allgather_json([[i, step] for i, step, _ in saves]) for pair in part):
         checkpoints[i].save(step, axis.replicated_one(states, i), metas.get(i, {}))
+
+
+def resume_point(checkpoints: Sequence[Checkpoints], progress: dict, indices: Sequence[int]) -> dict:
+    """The progress to resume from: `progress` itself when every configuration of `indices`
+    has a good checkpoint to restore (a live one at the progress step, a diverged one its
+    newest), else that of the newest earlier checkpoint step at which each has one (a
+    configuration that diverged after it trains again from there, and diverges again at the
+    same step). Each corrupt checkpoint is named on stderr with the step resumed from.
+    `CheckpointError` if there is no such step."""
+    step = int(progress["step"])
+    diverged_at = {i: int(d["diverged_at"]) for i, d in progress["diverged"].items()}
+    listed = {i: checkpoints[i].steps() for i in indices}
+    verdicts: dict[tuple[int, int], bool] = {}
+    warnings: list[str] = []
+
+    def good(i: int, at: int) -> bool:
+        if at not in listed[i]:
+            return False
+        if (i, at) not in verdicts:
+            try:
+                checkpoints[i].verify(at)
+                verdicts[i, at] = True
+            except CorruptCheckpointError as exc:
+                warnings.append(str(exc))
+                verdicts[i, at] = False
+        return verdicts[i, at]
+
+    def usable(i: int, at: int) -> bool:
+        if progress["alive"][i] or diverged_at.get(i, at) >= at:  # it trained at `at`
+            return good(i, at)
+        return bool(listed[i]) and good(i, max(listed[i]))  # its frozen last good state
+
+    for at in sorted({at for i in indices for at in listed[i] if at <= step} | {step}, reverse=True):
+        if all(usable(i, at) for i in indices):
+            break
+    else:
+        raise CheckpointError("no step at which every configuration of the sweep has a good checkpoint:\n  "
+                              + "\n  ".join(warnings or ["(none listed)"]))
+    for warning in warnings if jax.process_index() == 0 else ():
+        print(f"warning: {warning}; the sweep resumes from step {at}, where every configuration has a good "
+              "checkpoint", file=sys.stderr)
+    if at == step:
+        return progress
+    return {"step": at, "alive": [a or diverged_at.get(i, at) >= at for i, a in enumerate(progress["alive"])],
+            "diverged": {i: d for i, d in progress["diverged"].items() if diverged_at[i] < at}}
 
 
 def restore_configs(runs: Sequence[RunDir], checkpoints: Sequence[Checkpoints], cfgs: Sequence[RunConfig],
