@@ -429,6 +429,93 @@ def test_a_torn_metrics_line_is_skipped_by_readers_and_repaired_by_resume(tmp_pa
     _resume_matches(run, straight_run, capsys)
 
 
+def _flip_a_bit(directory: Path) -> Path:
+    """Flip one bit in the middle of the largest file under `directory`; returns the file."""
+    largest = max((p for p in directory.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    data = bytearray(largest.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    largest.write_bytes(bytes(data))
+    return largest
+
+
+def test_a_flipped_bit_in_a_checkpoint_is_caught_by_train_eval_and_plot(tmp_path, straight_run, capsys):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *CKPT_RUN, "--steps", "20"]) == 0
+    flipped = _flip_a_bit(run / "checkpoints" / "20" / "state")
+    name = flipped.relative_to(run / "checkpoints" / "20").as_posix()
+    expected = (f"warning: checkpoint {run / 'checkpoints' / '20'} is corrupt: its file {name} does not match the "
+                "checksum saved with it; restored checkpoint 10 instead")
+    capsys.readouterr()
+    assert cli_main(["eval", str(run)]) == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines() == [expected] and json.loads(out.splitlines()[-1])[0]["steps"] == 10
+    assert cli_main(["plot", str(run), "--out", str(tmp_path / "plots")]) == 0
+    assert expected in capsys.readouterr().err.splitlines()
+    _resume_matches(run, straight_run, capsys)  # from checkpoint 10: the losses of the uninterrupted run
+
+
+def _as_written_before_checksums(checkpoint: Path) -> None:
+    (checkpoint / "checksums.json").unlink()
+    meta = checkpoint / "meta" / "metadata"
+    meta.write_text(json.dumps({k: v for k, v in json.loads(meta.read_text()).items() if k != "checksums"}))
+
+
+def test_a_checkpoint_without_its_checksums_and_an_unchecked_corrupt_one_fall_back_quietly(tmp_path):
+    run = tmp_path / "run"
+    assert cli_main(["train", "--run-dir", str(run), *CKPT_RUN, "--steps", "30"]) == 0
+    ckpts = run / "checkpoints"
+    (ckpts / "30" / "checksums.json").unlink()  # committed, but killed before its checksums: unfinished
+    _as_written_before_checksums(ckpts / "20")  # a checkpoint of an older cdrl restores unchecked...
+    (ckpts / "20" / "state" / "manifest.ocdbt").write_bytes(b"garbage")  # ...and this one fails inside orbax
+    proc = subprocess.run(_cli("eval", str(run)), capture_output=True, text=True)  # orbax's stderr, unfiltered
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert lines[0] == (f"warning: checkpoint {ckpts / '30'} is unfinished: its save wrote no checksums; restored "
+                        "checkpoint 10 instead")
+    assert lines[1].startswith(f"warning: checkpoint {ckpts / '20'} is corrupt (ValueError: DATA_LOSS")
+    assert lines[1].endswith("; restored checkpoint 10 instead") and len(lines) == 2  # no 'Event loop is closed'
+    assert json.loads(proc.stdout.splitlines()[-1])[0]["steps"] == 10
+
+
+class _Listed:
+    """The part of `Checkpoints` a sweep's resume point reads: steps, and which fail their checksums."""
+
+    def __init__(self, steps, corrupt=()):
+        self._steps, self.corrupt = list(steps), set(corrupt)
+
+    def steps(self):
+        return self._steps
+
+    def verify(self, step):
+        from cdrl.runs.checkpoint import CorruptCheckpointError
+
+        if step in self.corrupt:
+            raise CorruptCheckpointError(f"checkpoint {step} is corrupt")
+        return True
+
+
+def test_a_sweep_resumes_from_the_newest_step_every_configuration_has_good(capsys):
+    from cdrl.runs.checkpoint import CheckpointError
+    from cdrl.runs.sweepstate import resume_point
+
+    # Configuration 1 diverged at step 12 (its frozen state saved at 15), 0 and 2 reached 20.
+    progress = {"step": 20, "alive": [True, False, True],
+                "diverged": {1: {"diverged_at": 12, "diverged_group": "g", "diverged_ratio": 1e4, "finite": True}}}
+    intact = [_Listed([15, 20]), _Listed([10, 15]), _Listed([15, 20])]
+    assert resume_point(intact, progress, range(3)) is progress
+    assert capsys.readouterr().err == ""
+    # Checkpoint 20 of configuration 2 is corrupt: all go back to 15; 1 is still diverged there.
+    back = resume_point([intact[0], intact[1], _Listed([15, 20], corrupt={20})], progress, range(3))
+    assert back == {"step": 15, "alive": [True, False, True], "diverged": progress["diverged"]}
+    assert capsys.readouterr().err == ("warning: checkpoint 20 is corrupt; the sweep resumes from step 15, where "
+                                       "every configuration has a good checkpoint\n")
+    # The frozen state of 1 is corrupt as well: back to 10, where 1 still trained (it diverges again at 12).
+    older = [_Listed([10, 15, 20]), _Listed([10, 15], corrupt={15}), _Listed([10, 15, 20], corrupt={20})]
+    assert resume_point(older, progress, range(3)) == {"step": 10, "alive": [True, True, True], "diverged": {}}
+    with pytest.raises(CheckpointError, match="no step at which every configuration of the sweep has a good"):
+        resume_point([_Listed([20], corrupt={20}), intact[1], intact[2]], progress, range(3))
+
+
 # ---- data sets: SIGKILL during a collection, a full disk during an episode write
 
 def _episode_files(out: Path) -> list[Path]:
@@ -492,6 +579,124 @@ def test_a_full_disk_during_an_episode_write_fails_clearly_and_keeps_the_episode
     monkeypatch.undo()
     assert cli_main(["collect", str(out), *args]) == 0
     assert store.EpisodeDataset(out, "all").complete
+
+
+# ---- data that changed under a run, manifests pointing outside their data set, early checks
+
+def _same_length_dataset(path: Path, n: int = 8) -> Path:
+    from cdrl.data.writer import save_dataset
+
+    episodes = _episodes(n)
+    for i, e in enumerate(episodes):  # every episode 30 frames long: two files can be swapped unnoticed
+        episodes[i] = type(e)(frames=e.frames[:30], actions=e.actions[:30], rewards=e.rewards[:30])
+    save_dataset(path, episodes, test_fraction=0.25)
+    return path
+
+
+def test_a_data_set_that_changed_stops_the_resume_unless_allowed(tmp_path, capsys):
+    from cdrl.data.store import EpisodeDataset
+
+    data = _same_length_dataset(tmp_path / "data")
+    run = tmp_path / "run"
+    args = ["--data", str(data), "--preset", "tiny", "--unroll", "8", "--batch", "2", "--eval-every", "0",
+            "--eval-episodes", "1", "--checkpoint-every", "5"]
+    assert cli_main(["train", "--run-dir", str(run), *args, "--steps", "10"]) == 0
+    first, second = (data / name for name in EpisodeDataset(data, "train").files[1:3])
+    swapped = tmp_path / "swap"
+    first.rename(swapped), second.rename(first), swapped.rename(second)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    capsys.readouterr()
+    assert cli_main(["train", "--resume", str(run), "--steps", "15"]) == 2
+    err = capsys.readouterr().err
+    assert (f"cdrl train: the data of run {run} changed since the run recorded it in {run / 'data.json'}: "
+            f"{first.name} changed; {second.name} changed. Resuming would train on other episodes") in err
+    assert "--allow-data-change" in err
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before  # nothing written
+    assert cli_main(["train", "--resume", str(run), "--steps", "15", "--allow-data-change"]) == 0
+    recorded = json.loads((run / "data.json").read_text())["changes"]
+    assert recorded == [{"step": 10, "allowed": "--allow-data-change",
+                         "changes": [f"{first.name} changed", f"{second.name} changed"]}]
+    assert [r["step"] for r in _records(run / "metrics.jsonl")] == list(range(15))
+    assert cli_main(["train", "--resume", str(run), "--steps", "16"]) == 0  # the changed data is the run's now
+
+
+def _escape(data: Path, how: str) -> None:
+    outside = data.parent / "outside.npz"
+    outside.write_bytes((data / "episode_000001.npz").read_bytes())
+    manifest = json.loads((data / "manifest.json").read_text())
+    entry = manifest["episodes"][1]
+    if how == "..":
+        entry["file"] = "../outside.npz"
+    elif how == "absolute":
+        entry["file"] = str(outside)
+    else:  # a symbolic link inside the directory that leads out of it
+        (data / "link.npz").symlink_to(outside)
+        entry["file"] = "link.npz"
+    (data / "manifest.json").write_text(json.dumps(manifest))
+
+
+@pytest.mark.parametrize("how", ["..", "absolute", "symlink"])
+def test_a_manifest_cannot_point_outside_its_data_set(tmp_path, capsys, how):
+    from cdrl.data.store import DatasetError, EpisodeDataset
+
+    data = _dataset(tmp_path / "data")
+    _escape(data, how)
+    with pytest.raises(DatasetError, match=r"episode 1's file .* is outside the data set directory"):
+        EpisodeDataset(data, "all")
+    capsys.readouterr()
+    assert cli_main(["train", "--run-dir", str(tmp_path / "run"), "--data", str(data), "--preset", "tiny"]) == 2
+    assert "is outside the data set directory" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def _three_episodes(t: Path) -> Path:
+    from cdrl.data.writer import save_dataset
+
+    save_dataset(t / "data", _episodes(3), test_fraction=0.1)  # round(0.3) = 0 held-out episodes
+    return t / "data"
+
+
+def _one_frame_dataset(t: Path) -> Path:
+    from cdrl.data.writer import save_dataset
+
+    episodes = _episodes(8)
+    episodes[5] = type(episodes[5])(frames=episodes[5].frames[:1], actions=episodes[5].actions[:1],
+                                    rewards=episodes[5].rewards[:1])
+    save_dataset(t / "data", episodes, test_fraction=0.25)
+    return t / "data"
+
+
+EARLY = {
+    "an empty held-out split": (lambda t: ["--data", str(_three_episodes(t))],
+                                "data set {t}/data holds no held-out episodes (its test split is empty: 3 episodes"),
+    "no held-out episodes to evaluate": (lambda t: ["--data", "synthetic", "--eval-episodes", "0"],
+                                         "eval_episodes must be >= 1, got 0"),
+    "a one-frame episode": (lambda t: ["--data", str(_one_frame_dataset(t))],
+                            "episode file {t}/data/episode_000005.npz of data set {t}/data has 1 frame(s); at least 2 "
+                            "are needed"),
+    "lr nan": (lambda t: ["--data", "synthetic", "--lr", "nan"], "lr must be a finite number, got nan"),
+    "lr inf": (lambda t: ["--data", "synthetic", "--lr", "inf"], "lr must be a finite number, got inf"),
+    "a negative evaluation interval": (lambda t: ["--data", "synthetic", "--eval-every", "-5"],
+                                       "eval_every must be >= 0, got -5"),
+    "game parameters for synthetic data": (lambda t: ["--data", "synthetic", "--env", "max_steps=300"],
+                                           "env 'max_steps=300' sets the built-in game, which a run on data "
+                                           "'synthetic' never plays"),
+}
+
+
+@pytest.mark.parametrize("command", ["train", "sweep"])
+@pytest.mark.parametrize("case", EARLY)
+def test_early_checks_fail_before_anything_is_written(tmp_path, capsys, case, command):
+    args, message = EARLY[case]
+    argv = [command, "--run-dir", str(tmp_path / "runs" / "new"), "--preset", "tiny", "--unroll", "4",
+            "--batch", "1", "--steps", "3", *args(tmp_path)]
+    (tmp_path / "empty").mkdir()
+    capsys.readouterr()
+    assert cli_main(argv) == 2
+    assert f"cdrl {command}: " + message.format(t=tmp_path) in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()  # not even a lone .lock in a directory made for it
+    argv[2] = str(tmp_path / "empty")  # a directory that was there before stays, without a .lock
+    assert cli_main(argv) == 2 and list((tmp_path / "empty").iterdir()) == []
 
 
 # ---- bad input: each refused with a named error
