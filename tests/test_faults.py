@@ -444,7 +444,7 @@ def test_a_flipped_bit_in_a_checkpoint_is_caught_by_train_eval_and_plot(tmp_path
     flipped = _flip_a_bit(run / "checkpoints" / "20" / "state")
     name = flipped.relative_to(run / "checkpoints" / "20").as_posix()
     expected = (f"warning: checkpoint {run / 'checkpoints' / '20'} is corrupt: its file {name} does not match the "
-                "checksum saved with it; restored checkpoint 10 instead")
+                "checksum saved with it; restored the older checkpoint 10 instead")
     capsys.readouterr()
     assert cli_main(["eval", str(run)]) == 0
     out, err = capsys.readouterr()
@@ -471,9 +471,9 @@ def test_a_checkpoint_without_its_checksums_and_an_unchecked_corrupt_one_fall_ba
     assert proc.returncode == 0, proc.stderr
     lines = proc.stderr.splitlines()
     assert lines[0] == (f"warning: checkpoint {ckpts / '30'} is unfinished: its save wrote no checksums; restored "
-                        "checkpoint 10 instead")
+                        "the older checkpoint 10 instead")
     assert lines[1].startswith(f"warning: checkpoint {ckpts / '20'} is corrupt (ValueError: DATA_LOSS")
-    assert lines[1].endswith("; restored checkpoint 10 instead") and len(lines) == 2  # no 'Event loop is closed'
+    assert lines[1].endswith("; restored the older checkpoint 10 instead") and len(lines) == 2  # no 'Event loop is closed'
     assert json.loads(proc.stdout.splitlines()[-1])[0]["steps"] == 10
 
 

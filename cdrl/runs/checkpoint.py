@@ -268,5 +268,5 @@ class Checkpoints:
         `cdrl eval` and `cdrl plot` restore with."""
         state, meta, warnings = self.restore_latest_good(like, check_meta)
         for warning in warnings if say else ():
-            print(f"warning: {warning}; restored checkpoint {meta.get('step')} instead", file=sys.stderr)
+            print(f"warning: {warning}; restored the older checkpoint {meta.get('step')} instead", file=sys.stderr)
         return state, meta
