@@ -152,12 +152,12 @@ def test_controller_updates_move_the_controller_only(learner):
     state = jax.tree.map(jnp.copy, state)
     mask = v.controller_mask(state.model.params)
     key = jax.random.PRNGKey(3)
-    ctrl_only, _ = dream._controller_update(v, cfg, state, hp, _starts(v, state), key, 1.0)
+    ctrl_only, _ = jax.jit(dream._controller_update, static_argnums=(0, 1))(v, cfg, state, hp, _starts(v, state), key, 1.0)
     moved = jax.tree.map(lambda a, b: np.asarray(a != b), ctrl_only.model.params, state.model.params)
     assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
     assert not any(np.any(m & (k == 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
     chunk, carry = _filled(state).chunk(0)
-    model_only, _ = dream._model_update(v, state, hp, chunk, carry)
+    model_only, _ = jax.jit(dream._model_update, static_argnums=0)(v, state, hp, chunk, carry)
     for new, old, k in zip(jax.tree.leaves(model_only.model.params), jax.tree.leaves(state.model.params),
                            jax.tree.leaves(mask)):
         np.testing.assert_array_equal(np.asarray(new)[np.asarray(k) > 0], np.asarray(old)[np.asarray(k) > 0])
@@ -172,7 +172,7 @@ def _filled(state):
 
 def _starts(v, state):
     chunk, carry = _filled(state).chunk(0)
-    return dream._starts(v, state.model.params, chunk, carry)
+    return jax.jit(dream._starts, static_argnums=0)(v, state.model.params, chunk, carry)
 
 
 def test_the_controller_learns_a_trivially_learnable_reward_in_imagination(learner):
@@ -183,8 +183,8 @@ def test_the_controller_learns_a_trivially_learnable_reward_in_imagination(learn
     for _ in range(60):
         state, metrics = dream.dream_step(v, g, cfg, state, hp, params)
     assert float(metrics["controller_on"]) == 1.0 and not bool(metrics["diverged"])
-    learned = play.summarize(*play.play(g, params, *play.controller_policy(v, state.model.params), SEEDS,
-                                        games.MAX_STEPS))
+    init, step, p = play.controller_policy(v, state.model.params)
+    learned = play.summarize(*play.play(g, params, init, step, SEEDS, games.MAX_STEPS, params=p))
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)

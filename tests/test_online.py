@@ -153,7 +153,8 @@ def test_controller_learns_a_trivially_learnable_reward(game):
         state, metrics = online.online_step(v, g, cfg, state, hp, env_params)
     assert float(metrics["ascent_on"]) == 1.0
     seeds = np.arange(1000, 1016)
-    learned = play.summarize(*play.play(g, env_params, *play.controller_policy(v, state.train.params), seeds, 40))
+    init, step, p = play.controller_policy(v, state.train.params)
+    learned = play.summarize(*play.play(g, env_params, init, step, seeds, 40, params=p))
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, env_params, uniform.init, uniform.step, seeds, 40))
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)

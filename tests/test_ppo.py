@@ -225,7 +225,7 @@ def test_policy_presses_by_probability():
 
     @jax.jit
     def act(keys):
-        play = lambda pol: jax.vmap(lambda k: pol[1](k, pol[0](k), obs)[0])(keys)  # noqa: E731
+        play = lambda pol: jax.vmap(lambda k: pol[1](k, pol[0](k, pol[2]), obs, pol[2])[0])(keys)  # noqa: E731
         return play(greedy), play(sampled)
 
     g_actions, s_actions = act(jax.random.split(jax.random.PRNGKey(0), 4000))
@@ -246,7 +246,8 @@ def test_ppo_learns_a_trivially_learnable_reward(start):
     assert not bool(metrics["diverged"])
     assert float(metrics["action_mean"][1]) > 0.9 and float(metrics["action_mean"][0]) < 0.1
     seeds = np.arange(1000, 1016)
-    learned = play.summarize(*play.play(g, env_params, *ppo.ppo_policy(ARCH, state.params), seeds, 40))
+    init, step, p = ppo.ppo_policy(ARCH, state.params)
+    learned = play.summarize(*play.play(g, env_params, init, step, seeds, 40, params=p))
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, env_params, uniform.init, uniform.step, seeds, 40))
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)

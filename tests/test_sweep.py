@@ -83,5 +83,5 @@ def test_sweep_cli_and_bad_input(tmp_path, capsys):
     assert "online" in capsys.readouterr().err
     with pytest.raises(ValueError, match="repeats a value of lr"):
         Grid(lr=(0.1, 0.1))
-    with pytest.raises(ValueError, match="lr > 0"):
+    with pytest.raises(ValueError, match="lr must be > 0"):
         sweep_run(RunConfig(variant="main", **BASE), Grid(lr=(0.1, -1.0)), tmp_path / "x", progress=False)

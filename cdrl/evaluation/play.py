@@ -3,9 +3,11 @@
 A policy is `init(key) -> state` and `step(key, state, obs) -> (action, state)` for one
 game (the form of `envs.policies`; a privileged policy's step also takes the game's state and
 physics); `play` runs N games in one `vmap` and a `lax.scan` of `max_steps`, and counts each
-game's return and length up to its first episode end. `controller_policy` wraps a trained
-controller variant in the same form, without exploration noise: it executes ã_t and feeds it
-back, as in training.
+game's return and length up to its first episode end. A learned policy takes its parameters as
+an argument, `init(key, params)` and `step(key, state, obs, params)`, passed traced (`play(...,
+params=)`), so one compiled program plays it at every evaluation of a run: `controller_policy`
+gives a trained controller variant so, without exploration noise (it executes ã_t and feeds it
+back, as in training), `cdrl.training.ppo.ppo_policy` a PPO policy.
 
 `compare_policies` is the protocol every figure of control uses: the learned policies and the
 reference policies (`REFERENCES`: uniform random, random turning that never accelerates, the
@@ -26,16 +28,19 @@ from cdrl.data.frames import resize_obs
 from cdrl.models.base import StepInput, Variant
 
 
-def controller_policy(variant: Variant, params) -> tuple[Callable, Callable]:
-    """(init, step) of the trained controller as a noise-free policy for one game."""
+@functools.lru_cache(maxsize=32)
+def controller_fns(variant: Variant) -> tuple[Callable, Callable]:
+    """(init, step) of a controller variant's noise-free policy for one game, its parameters an
+    argument: `init(key, params)`, `step(key, state, obs, params)`. One pair per variant, so a
+    program playing it compiles once for any parameters (they are traced, not baked in)."""
     size = variant.arch.image_size
 
-    def init(key):
-        del key
+    def init(key, params):
+        del key, params
         return {"carry": variant.init_carry(1), "action": jnp.zeros((1, variant.arch.action_dim)),
                 "is_first": jnp.ones((1,), bool)}
 
-    def step(key, state, obs):
+    def step(key, state, obs, params):
         del key
         x = StepInput(obs=resize_obs(obs, size)[None], action=state["action"], is_first=state["is_first"])
         carry, out = variant.step(params, state["carry"], x)
@@ -45,12 +50,22 @@ def controller_policy(variant: Variant, params) -> tuple[Callable, Callable]:
     return init, step
 
 
+def controller_policy(variant: Variant, params) -> tuple[Callable, Callable, Any]:
+    """The trained controller as a noise-free policy: `(init, step, params)` for `play`
+    (`params=`) and `compare_policies`. It executes ã_t and feeds it back, as in training."""
+    return (*controller_fns(variant), params)
+
+
 EVAL_SEED = 10_000  # the first held-out game; training games never use seeds this high
 REFERENCES = ("uniform", "never_accelerate", "behaviour", "privileged")
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 5, 6))
-def _play(game, policy_init, policy_step, env_params, keys, max_steps: int, privileged: bool = False):
+def _play(game, policy_init, policy_step, env_params, keys, max_steps: int, privileged: bool, params):
+    # A learned policy's parameters come in traced (`params`), a reference policy has none.
+    learned = params is not None
+    init = functools.partial(policy_init, params=params) if learned else policy_init
+
     def one_game(key):
         k_reset, k_policy, k_run = jax.random.split(key, 3)
         obs, env_state = game.reset(k_reset, env_params)
@@ -60,6 +75,8 @@ def _play(game, policy_init, policy_step, env_params, keys, max_steps: int, priv
             key, k_act, k_env = jax.random.split(key, 3)
             if privileged:
                 action, pstate = policy_step(k_act, pstate, obs, env_state, env_params)
+            elif learned:
+                action, pstate = policy_step(k_act, pstate, obs, params)
             else:
                 action, pstate = policy_step(k_act, pstate, obs)
             obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, action, env_params)
@@ -68,7 +85,7 @@ def _play(game, policy_init, policy_step, env_params, keys, max_steps: int, priv
             alive = alive & ~(term | trunc)
             return (env_state, obs, pstate, key, ret, length, alive), None
 
-        c0 = (env_state, obs, policy_init(k_policy), k_run, jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.array(True))
+        c0 = (env_state, obs, init(k_policy), k_run, jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.array(True))
         c, _ = jax.lax.scan(body, c0, None, length=max_steps)
         return c[4], c[5]
 
@@ -76,11 +93,12 @@ def _play(game, policy_init, policy_step, env_params, keys, max_steps: int, priv
 
 
 def play(game, env_params, policy_init, policy_step, seeds: list[int] | np.ndarray, max_steps: int,
-         privileged: bool = False):
+         privileged: bool = False, params=None):
     """Returns and lengths `[N]` of one episode per seed (at most `max_steps` steps each);
-    `privileged`: the policy's step takes the game's state and physics too."""
+    `privileged`: the policy's step takes the game's state and physics too; `params`: a learned
+    policy's parameters, passed to `init(key, params)` and `step(key, state, obs, params)`."""
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
-    returns, lengths = _play(game, policy_init, policy_step, env_params, keys, int(max_steps), privileged)
+    returns, lengths = _play(game, policy_init, policy_step, env_params, keys, int(max_steps), privileged, params)
     return np.asarray(returns), np.asarray(lengths)
 
 
@@ -93,13 +111,15 @@ def reference_policy(game, name: str):
     return privileged_policy(game) if name == "privileged" else get_policy(name)
 
 
-def compare_policies(game, env_params, learned: dict[str, tuple[Callable, Callable]], episodes: int,
+def compare_policies(game, env_params, learned: dict[str, tuple], episodes: int,
                      max_steps: int, seed: int = EVAL_SEED, references: bool = True) -> dict[str, dict]:
-    """The `learned` policies (name -> (init, step), noise-free) and, with `references`, every
-    reference policy, on the same `episodes` held-out games: name -> `summarize` row."""
+    """The `learned` policies (name -> (init, step) in the form of `envs.policies`, or
+    (init, step, params) as `controller_policy` gives them; noise-free) and, with `references`,
+    every reference policy, on the same `episodes` held-out games: name -> `summarize` row."""
     seeds = np.arange(seed, seed + episodes)
-    rows = {name: summarize(*play(game, env_params, init, step, seeds, max_steps))
-            for name, (init, step) in learned.items()}
+    rows = {name: summarize(*play(game, env_params, policy[0], policy[1], seeds, max_steps,
+                                  params=policy[2] if len(policy) == 3 else None))
+            for name, policy in learned.items()}
     for name in REFERENCES if references else ():
         policy = reference_policy(game, name)
         rows[name] = summarize(*play(game, env_params, policy.init, policy.step, seeds, max_steps,
@@ -111,8 +131,6 @@ def compare_policies(game, env_params, learned: dict[str, tuple[Callable, Callab
 def _reward_trace(variant: Variant, game, params, env_params, keys, max_steps: int):
     """Per game and step `[N, T]`: the controller's predicted reward r̃_{t+1}, the real r_{t+1},
     and whether the game was still on."""
-    init, step = controller_policy(variant, params)
-
     def one_game(key):
         k_reset, k_run = jax.random.split(key)
         obs, env_state = game.reset(k_reset, env_params)
@@ -127,7 +145,7 @@ def _reward_trace(variant: Variant, game, params, env_params, keys, max_steps: i
             obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, x.action[0], env_params)
             return (env_state, obs, pstate, key, alive & ~(term | trunc)), (out["reward"][0], reward, alive)
 
-        c0 = (env_state, obs, init(None), k_run, jnp.array(True))
+        c0 = (env_state, obs, controller_fns(variant)[0](None, params), k_run, jnp.array(True))
         return jax.lax.scan(body, c0, None, length=max_steps)[1]
 
     return jax.vmap(one_game)(keys)

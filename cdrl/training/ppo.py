@@ -40,6 +40,7 @@ Every number of `PPOHParams` is a traced array, so one compiled program serves a
 from __future__ import annotations
 
 import dataclasses
+import functools
 import numbers
 from typing import Any
 
@@ -328,19 +329,28 @@ ppo_step = jax.jit(ppo_step_fn, static_argnums=(0, 1, 2), donate_argnums=3)
 # --------------------------------------------------------------------------- playing
 
 
-def ppo_policy(arch: ArchConfig, params, greedy: bool = True):
-    """(init, step) of the trained policy for one game, in the form of `cdrl.evaluation.play`:
-    the game's frame is resized to `arch.image_size`; greedy presses a button when its probability
-    exceeds 0.5, otherwise each button is sampled with the key given to `step`."""
+@functools.lru_cache(maxsize=32)
+def ppo_policy_fns(arch: ArchConfig, greedy: bool = True):
+    """(init, step) of a PPO policy for one game, its parameters an argument (`init(key,
+    params)`, `step(key, state, obs, params)`; one pair per architecture, so a program playing it
+    compiles once for any parameters): the game's frame is resized to `arch.image_size`; greedy
+    presses a button when its probability exceeds 0.5, otherwise each button is sampled with the
+    key given to `step`."""
     size = arch.image_size
 
-    def init(key):
-        del key
+    def init(key, params):
+        del key, params
         return jnp.zeros((), jnp.float32)
 
-    def step(key, state, obs):
+    def step(key, state, obs, params):
         logits, _ = policy_value(arch, params, resize_obs(obs, size)[None])
         action = (logits[0] > 0.0).astype(jnp.float32) if greedy else sample_action(key, logits[0])
         return action, state
 
     return init, step
+
+
+def ppo_policy(arch: ArchConfig, params, greedy: bool = True):
+    """The trained policy, `(init, step, params)`, in the form of `cdrl.evaluation.play`
+    (`play(..., params=)`, `compare_policies`)."""
+    return (*ppo_policy_fns(arch, greedy), params)
