@@ -18,6 +18,7 @@ import pytest
 
 from cdrl.cli import main as cli_main
 from cdrl.data.lock import LOCK_NAME, DirLock, LockedError
+from cdrl.training.loop import Job, Plan, Sink, host_loop
 
 TINY_RUN = ["--data", "synthetic", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30",
             "--unroll", "8", "--batch", "2", "--lr", "0.3", "--eval-every", "0", "--eval-episodes", "1"]
@@ -801,3 +802,35 @@ BAD_API = {
 def test_bad_api_input_is_refused_by_name(tmp_path, case):
     with pytest.raises(ValueError, match=BAD_API[case]):
         _bad_api(case, tmp_path)()
+
+
+class _Events(Job):
+    """A job that only logs what the host loop asks of it."""
+
+    desc, ratio_names = "events", ["g"]
+
+    def __init__(self):
+        self.events = []
+
+    def step(self, state):
+        return state + 1, {"loss": 0.0, "terms": {}, "max_ratio": 0.0, "worst_group": 0, "ratios": [0.0],
+                           "finite": True, "diverged": False}
+
+    def evaluate(self, step, state, lanes):
+        self.events.append(("eval", step))
+        return {0: ({"step": step}, None)}
+
+    def save(self, step, state, saves, alive, diverged):
+        self.events.append(("save", step))
+
+
+def test_the_final_evaluation_is_recorded_before_the_final_checkpoint():
+    """A run killed after its last checkpoint has its final evaluation: the loop evaluates the
+    last step before checkpointing it (a kill between the two resumes from the checkpoint
+    before, which evaluates again), and a run resumed at its last step evaluates nothing."""
+    job = _Events()
+    host_loop(job, 0, Plan(steps=4, eval_every=2, checkpoint_every=2), [Sink()])
+    assert job.events == [("eval", 2), ("save", 2), ("eval", 4), ("save", 4)]
+    finished = _Events()
+    host_loop(finished, 4, Plan(steps=4, start=4, eval_every=2, checkpoint_every=2), [Sink()])
+    assert finished.events == []

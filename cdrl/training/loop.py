@@ -52,8 +52,8 @@ class DivergenceError(RuntimeError):
 class Plan:
     """When a run steps, evaluates and checkpoints: steps `start` .. `steps` - 1; an evaluation
     after every `eval_every` steps (0: none on the way) and, with `final_eval`, one at the end
-    unless the run was already finished; a checkpoint after every `checkpoint_every` steps and
-    at the end (0: none)."""
+    (before the last checkpoint) unless the run was already finished; a checkpoint after every
+    `checkpoint_every` steps and at the end (0: none)."""
 
     steps: int
     start: int = 0
@@ -242,7 +242,11 @@ def host_loop(job: Job, state, plan: Plan, sinks: Sequence[Sink], alive: Sequenc
                 saved = f" Last good state saved in {where}." if where else ""
                 raise DivergenceError(first.message + saved, state, step, first.group, first.ratio)
             done = step + 1
-            if plan.eval_every and done % plan.eval_every == 0 and done < plan.steps:
+            # The final evaluation comes before the final checkpoint: a run killed between the
+            # two resumes from the checkpoint before and evaluates again, while one whose last
+            # checkpoint is written has its final evaluation recorded.
+            periodic = plan.eval_every and done % plan.eval_every == 0 and done < plan.steps
+            if periodic or (plan.final_eval and done == plan.steps):
                 evaluate(done)
             if plan.checkpoint_every and (done % plan.checkpoint_every == 0 or done == plan.steps):
                 for sink in sinks:
@@ -253,8 +257,6 @@ def host_loop(job: Job, state, plan: Plan, sinks: Sequence[Sink], alive: Sequenc
             bar.update(1)
             if records:
                 bar.set_postfix(job.postfix(records))
-        if plan.final_eval and plan.start < plan.steps:
-            evaluate(plan.steps)
     finally:
         bar.close()
         for sink in sinks:
