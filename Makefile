@@ -4,7 +4,7 @@ PYTHON ?= python3.11
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test install bench notebooks clean
+.PHONY: demo test test-e2e install bench notebooks clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,9 +27,16 @@ demo: $(STAMP)
 
 # Two workers, a test file each at a time (a file's module fixtures are built once); the
 # tests that pin numbers then run compiled at XLA's default optimisation level, as users run.
+# `make test` leaves out the end-to-end tier (`e2e`: notebooks executed in a kernel, two-process
+# jax.distributed runs, processes killed mid-write), which `make test-e2e` runs; CI runs both
+# (.ci/run), sharing one compilation cache (CDRL_TEST_XLA_CACHE).
+PYTEST := $(VENV)/bin/python -m pytest -n 2 --dist loadfile --durations=15
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -n 2 --dist loadfile -m "not default_opt"
-	CDRL_TEST_XLA_OPT=default $(VENV)/bin/python -m pytest -n 2 --dist loadfile -m default_opt
+	$(PYTEST) -m "not default_opt and not e2e"
+	CDRL_TEST_XLA_OPT=default $(PYTEST) -m "default_opt and not e2e"
+
+test-e2e: $(STAMP)
+	$(PYTEST) -m e2e
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/env_throughput.py --quick

@@ -25,6 +25,8 @@ from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.rundir import RunDir
 from cdrl.training.step import init_state
 
+pytestmark = pytest.mark.e2e
+
 TINY = ["--data", "synthetic", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30", "--unroll", "8",
         "--batch", "2", "--eval-episodes", "1"]
 SWEEP_GRID = ["--lr", "0.3", "0.1", "1e4"]  # three configurations on two devices: one pad; lr 1e4 diverges

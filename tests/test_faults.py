@@ -91,6 +91,7 @@ def test_dir_lock_refuses_a_second_holder_and_outlives_no_killed_one(tmp_path):
     lock.release()
 
 
+@pytest.mark.e2e
 def test_a_second_writer_is_refused_while_readers_work(tmp_path, capsys):
     run = tmp_path / "run"
     proc = _start("train", "--run-dir", str(run), *TINY_RUN, "--steps", "100000", "--checkpoint-every", "5")
@@ -314,6 +315,7 @@ def _progress_step(sweep: Path) -> int:
         return 0
 
 
+@pytest.mark.e2e
 def test_sigkill_during_a_sweep_resumes_every_configuration_exactly(tmp_path, capsys):
     straight = tmp_path / "straight"
     assert cli_main(["sweep", "--run-dir", str(straight), *TINY_RUN, *SWEEP_GRID, "--steps", "40",
@@ -523,6 +525,7 @@ def _episode_files(out: Path) -> list[Path]:
     return sorted(out.glob("episode_*.npz"))
 
 
+@pytest.mark.e2e
 def test_sigkill_during_collect_keeps_whole_episodes_and_the_rerun_completes_the_set(tmp_path, capsys):
     import numpy as np
 
