@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -155,7 +156,8 @@ def _cmd_eval(args) -> int:
     from cdrl.analysis.report import eval_runs
 
     try:
-        rows = eval_runs([Path(p) for p in args.run_dirs], episodes=args.episodes)
+        rows = eval_runs([Path(p) for p in args.run_dirs], episodes=args.episodes, horizon=args.horizon,
+                         context=args.context)
     except USER_ERRORS as exc:
         print(f"cdrl eval: {exc}", file=sys.stderr)
         return 2
@@ -221,12 +223,47 @@ def _cmd_variants(args) -> int:
     return 0
 
 
+def compile_cache_dir() -> Path:
+    """Where compiled programs are kept: $CDRL_COMPILE_CACHE, else JAX's own
+    $JAX_COMPILATION_CACHE_DIR, else $XDG_CACHE_HOME/cdrl/xla (~/.cache/cdrl/xla)."""
+    for name in ("CDRL_COMPILE_CACHE", "JAX_COMPILATION_CACHE_DIR"):
+        if os.environ.get(name):
+            return Path(os.environ[name])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cdrl" / "xla"
+
+
+def use_compile_cache(args) -> None:
+    """JAX's persistent compilation cache in `args.compile_cache` (unless
+    `--no-compile-cache`): a second run of the same configuration loads every program it
+    compiled the first time instead of compiling it again. Setting it touches no backend, so
+    `--distributed` can still join its processes afterwards."""
+    if args.no_compile_cache:
+        return
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", str(args.compile_cache))
+    # every program, however quick to compile (JAX's defaults skip those under a second)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                      float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", 0.0)))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cdrl", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--compile-cache", metavar="DIR", type=Path, default=compile_cache_dir(),
+                        help="keep compiled programs in DIR, so that a second run of the same configuration "
+                             "compiles nothing (default: $CDRL_COMPILE_CACHE, else $JAX_COMPILATION_CACHE_DIR, "
+                             "else ~/.cache/cdrl/xla; now %(default)s)")
+    common.add_argument("--no-compile-cache", action="store_true",
+                        help="compile every program afresh and keep nothing on disk")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    train = sub.add_parser("train", help="train a model variant (the main job)")
+    def command(name: str, **kwargs) -> argparse.ArgumentParser:  # every command takes the common options
+        return sub.add_parser(name, parents=[common], **kwargs)
+
+    train = command("train", help="train a model variant (the main job)")
     train.add_argument("--run-dir", default="runs/run", help="directory of the run's outputs (default: runs/run)")
     train.add_argument("--resume", metavar="RUN_DIR", default=None,
                        help="continue the run in RUN_DIR from its last good checkpoint (default: none)")
@@ -235,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(train)
     train.set_defaults(func=_cmd_train)
 
-    sw = sub.add_parser("sweep", help="train a grid of configurations (any of --lr --momentum --b2 --weight-decay --grad-clip --lr-warmup --seed --diverge-threshold with several values) as one vmapped program")
+    sw = command("sweep", help="train a grid of configurations (any of --lr --momentum --b2 --weight-decay --grad-clip --lr-warmup --seed --diverge-threshold with several values) as one vmapped program")
     sw.add_argument("--run-dir", default="runs/sweep", help="directory of the sweep's runs and table (default: runs/sweep)")
     sw.add_argument("--resume", metavar="SWEEP_DIR", default=None,
                     help="continue the sweep in SWEEP_DIR from its last complete checkpoint; only --steps, "
@@ -246,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(sw, several=GRID_FIELDS)
     sw.set_defaults(func=_cmd_sweep)
 
-    ls = sub.add_parser("lr-search", help="the thesis's learning-rate search: the highest rate whose norm ratios "
+    ls = command("lr-search", help="the thesis's learning-rate search: the highest rate whose norm ratios "
                                           "stay under a threshold over a probe budget (candidates run in parallel)")
     ls.add_argument("--candidates", type=float, nargs="+", default=list(LR_CANDIDATES),
                     help=f"learning rates to probe (default: {' '.join(map(str, LR_CANDIDATES))})")
@@ -256,16 +293,22 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(ls, skip=("lr", "steps", "diverge_threshold"))
     ls.set_defaults(func=_cmd_lr_search)
 
-    ev = sub.add_parser("eval", help="evaluate trained runs on their held-out episodes and print a table")
+    ev = command("eval", help="evaluate trained runs on their held-out episodes and print a table")
     ev.add_argument("run_dirs", nargs="*", metavar="RUN_DIR")
     ev.add_argument("--episodes", type=int, default=None,
                     help="held-out episodes (with --policy: games per policy) (default: the run's eval_episodes)")
+    ev.add_argument("--horizon", metavar="K", type=int, default=None,
+                    help="also score predictions K steps ahead: after --context real frames the model is fed its "
+                         "own predictions, the excess ratio at every step 1 .. K against copying the last real "
+                         "frame for as long (default: none)")
+    ev.add_argument("--context", metavar="C", type=int, default=8,
+                    help="with --horizon: real frames the model sees before it runs open loop")
     ev.add_argument("--policy", metavar="RUN_DIR", default=None,
                     help="play the controller of RUN_DIR against the random and behaviour-switching policies "
                          "on the same seeds: mean return with a 95%% CI, episode length (default: none)")
     ev.set_defaults(func=_cmd_eval)
 
-    plot = sub.add_parser("plot", help="write the thesis's figures of one or more runs as PNG files")
+    plot = command("plot", help="write the thesis's figures of one or more runs as PNG files")
     plot.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
     plot.add_argument("--out", default=None, help="output directory (default: RUN_DIR/plots of the first run)")
     plot.add_argument("--groups", nargs="+", default=None, metavar="GROUP",
@@ -273,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "(default: the thesis's encoder layer 4 and decoder layer 3 kernels)")
     plot.set_defaults(func=_cmd_plot)
 
-    col = sub.add_parser("collect", help="record episodes of the built-in game, or of any gymnasium game (--env), "
+    col = command("collect", help="record episodes of the built-in game, or of any gymnasium game (--env), "
                                           "to a data set directory")
     col.add_argument("out", metavar="OUT_DIR")
     col.add_argument("--episodes", type=int, default=100, help="number of episodes (default: 100)")
@@ -301,13 +344,14 @@ def build_parser() -> argparse.ArgumentParser:
                           "e.g. is_slippery=false (default: none)")
     col.set_defaults(func=_cmd_collect)
 
-    var = sub.add_parser("variants", help="list the model variants")
+    var = command("variants", help="list the model variants")
     var.set_defaults(func=_cmd_variants)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    use_compile_cache(args)
     return args.func(args)
 
 

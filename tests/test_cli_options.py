@@ -111,9 +111,10 @@ def test_lr_search_options_are_refused_by_name(stubbed, capsys, option):
                False, stubbed, capsys)
 
 
-def test_eval_episodes_are_refused_by_name(stubbed, capsys):
+@pytest.mark.parametrize("option", ["--episodes", "--horizon", "--context"])
+def test_eval_options_are_refused_by_name(stubbed, capsys, option):
     for value in VALUES:  # before the run is read: R does not exist
-        _check(["eval", "R", "--episodes", value], "episodes", False, stubbed, capsys)
+        _check(["eval", "R", option, value], option[2:], False, stubbed, capsys)
 
 
 @pytest.mark.parametrize("option", ["--episodes", "--seed", "--episode-steps", "--obs-size"])
@@ -145,7 +146,7 @@ def test_the_sweep_of_values_covers_every_numeric_option_of_every_command():
     assert numeric["train"] == numeric["sweep"] == run_options
     assert numeric["lr-search"] == (run_options - {"--lr", "--steps", "--diverge-threshold"}
                                     | {"--probe-steps", "--threshold", "--candidates"})
-    assert numeric["eval"] == {"--episodes"}
+    assert numeric["eval"] == {"--episodes", "--horizon", "--context"}
     assert numeric["collect"] == {"--episodes", "--seed", "--episode-steps", "--obs-size", "--crop"}
     assert numeric["plot"] == numeric["variants"] == set()
     assert {name for name, _ in ACCEPTED} <= set(NUMERIC)

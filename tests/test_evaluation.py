@@ -87,3 +87,48 @@ def test_excess_ratio_reads_as_documented():
     assert np.isnan(excess_ratio(0.5, 0.47, 0.47))  # copying already at the floor: undefined
     with pytest.raises(ValueError, match="no episodes"):
         evaluate(make_variant("main", TINY), None, [])
+
+
+@pytest.mark.parametrize("name", ["main", "closed_loop_minus", "final_proposal"])
+def test_open_loop_scores_equal_a_step_by_step_computation(name):
+    """Each window: C real frames from a zero carry, then the model's own sigmoid prediction fed
+    back one Python step at a time (the recorded actions in); per horizon step the mean BCE, the
+    copy of the last real frame, the floor and their ratio. Step 1 is the ordinary one-step
+    prediction; closed loop − sees a zero error once it is fed its own prediction."""
+    from cdrl.evaluation.multistep import multistep_scores, windows
+
+    v = make_variant(name, TINY)
+    params = v.init(jax.random.PRNGKey(4))
+    eps = synthetic_episodes(2, 25, TINY.image_size, seed=3)
+    context, horizon = 3, 4
+    got = multistep_scores(v, params, eps, context, horizon, batch=3)  # 6 windows: two groups of 3
+    spans = windows(eps, context + horizon)
+    assert got["windows"] == len(spans) == 6
+    step = jax.jit(v.step)
+    sums = np.zeros((3, horizon))
+    for i, s in spans:
+        frames = eps[i].frames[s: s + context + horizon].astype(np.float64) / 255
+        actions = eps[i].actions[s: s + context + horizon].astype(np.float32)
+        carry, obs = v.init_carry(1), frames[0]
+        for t in range(context + horizon - 1):
+            x = StepInput(obs=jnp.asarray(obs[None], jnp.float32), action=jnp.asarray(actions[t][None]),
+                          is_first=jnp.array([t == 0]))
+            if name == "closed_loop_minus" and t >= context:  # its input o_t − õ_t is zero
+                assert np.abs(np.asarray(x.obs) - np.asarray(carry["pred_obs"])).max() < 1e-6
+            carry, out = step(params, carry, x)
+            logits = np.asarray(out["logits"][0], np.float64)
+            obs = frames[t + 1] if t + 1 < context else 1 / (1 + np.exp(-logits))
+            if t >= context - 1:
+                k, target = t - context + 1, frames[t + 1]
+                last = np.clip(frames[context - 1], COPY_EPS, 1 - COPY_EPS)
+                p = np.clip(target, 1e-7, 1 - 1e-7)
+                sums[:, k] += [np.mean(np.logaddexp(0, logits) - target * logits),
+                               np.mean(-(target * np.log(last) + (1 - target) * np.log(1 - last))),
+                               np.mean(-(p * np.log(p) + (1 - p) * np.log(1 - p)))]
+    bce, copy, floor = sums / len(spans)
+    np.testing.assert_allclose(got["bce"], bce, rtol=1e-5)
+    np.testing.assert_allclose(got["copy_bce"], copy, rtol=1e-5)
+    np.testing.assert_allclose(got["target_entropy"], floor, rtol=1e-5)
+    np.testing.assert_allclose(got["excess_ratio"], (bce - floor) / (copy - floor), rtol=1e-3)
+    with pytest.raises(ValueError, match="context \\+ horizon = 30 frames"):
+        multistep_scores(v, params, eps, 10, 20)

@@ -163,3 +163,25 @@ def test_the_readme_python_example_runs(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     exec(compile(code, "README.md", "exec"), {})
     assert [r["step"] for r in _records(tmp_path / "runs" / "py")] == list(range(60))
+
+
+@pytest.mark.e2e
+def test_a_second_run_of_the_same_configuration_compiles_nothing(tmp_path):
+    """The CLI keeps JAX's compilation cache in --compile-cache: a second process training the
+    same configuration finds every program it needs there and adds none; --no-compile-cache
+    keeps nothing."""
+    cache = tmp_path / "cache"
+
+    def programs(directory: Path) -> set[str]:
+        return {p.name for p in directory.iterdir() if not p.name.endswith(("-atime", ".lock"))}
+
+    for name in ("first", "second"):
+        subprocess.run(_cli("train", "--run-dir", str(tmp_path / name), *SMALL_RUN, "--steps", "2",
+                            "--compile-cache", str(cache)), check=True, capture_output=True)
+        if name == "first":
+            compiled = programs(cache)
+    assert compiled and programs(cache) == compiled
+    subprocess.run(_cli("train", "--run-dir", str(tmp_path / "third"), *SMALL_RUN, "--steps", "2",
+                        "--compile-cache", str(tmp_path / "unused"), "--no-compile-cache"), check=True,
+                   capture_output=True)
+    assert not (tmp_path / "unused").exists()

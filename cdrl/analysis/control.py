@@ -12,6 +12,9 @@ greedy buttons. The reference policies play the same games once: they do not lea
   rollout       final_proposal, the thesis's reward ascent through the real chunk, scope controller
   rollout-all   the same, scope all (the thesis's literal wording: is reward hallucinated?)
   critic-open   reward_prediction (open loop on observations), as `critic`: does closed loop − help?
+  critic-pre    `critic` on a world model learnt offline first (`--controller none`, on the data
+                the run collects: 60 episodes of uniform-random play) and trained on online
+                (`--init-from`); its game frames count the pre-training data's
   ppo           PPO at the same game frames; ppo-10x at ten times them
 
 Runs live under a work directory, one per configuration and seed (`NAME/seedS`); a finished
@@ -27,21 +30,25 @@ from typing import Sequence
 import numpy as np
 import scipy.stats
 
-from cdrl.evaluation.play import EVAL_SEED, reward_fit
+from cdrl.evaluation.play import EVAL_SEED, model_fit
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.online import restore_learner
 from cdrl.runs.rundir import RunDir
+from cdrl.runs.sources import load_episodes
 from cdrl.runs.train import train_run
 
 # name -> options of the run (RunConfig fields) besides the budget's; `frames_factor` scales
-# the budget's game frames.
+# the budget's game frames; `pretrain` first trains the world model offline for the budget's
+# `pretrain_steps` (RunConfig fields of that run).
 CONFIGS: dict[str, dict] = {
     "critic": {"variant": "final_proposal", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
     "imagine": {"variant": "final_proposal", "controller": "imagine", "optimizer": "adam", "lr": 1e-3},
     "rollout": {"variant": "final_proposal", "controller": "rollout", "scope": "controller"},
     "rollout-all": {"variant": "final_proposal", "controller": "rollout", "scope": "all"},
     "critic-open": {"variant": "reward_prediction", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
+    "critic-pre": {"variant": "final_proposal", "controller": "critic",
+                   "pretrain": {"variant": "final_proposal", "controller": "none"}},
     "ppo": {"variant": "ppo"},
     "ppo-10x": {"variant": "ppo", "frames_factor": 10},
 }
@@ -51,7 +58,8 @@ CONFIGS: dict[str, dict] = {
 class Budget:
     """How much every run of the experiment gets: the preset, the game frames of training,
     held-out games per evaluation and their step cap, evaluations per run, the model-based
-    runs' updates before their controller learns, and B x T of model-based runs and of PPO."""
+    runs' updates before their controller learns, B x T of model-based runs and of PPO, and
+    the steps of a world model's offline pre-training (B 4 x T 8, the `fast` recipe's)."""
 
     preset: str
     frames: int
@@ -61,25 +69,37 @@ class Budget:
     warmup_steps: int
     model_shape: tuple[int, int] = (8, 16)
     ppo_shape: tuple[int, int] = (16, 32)
+    pretrain_steps: int = 8000
 
 
 BUDGETS = {
     "full": Budget("small", 38_400, 64, 200, 4, 50),
     "default": Budget("small", 6_400, 16, 200, 2, 10),
-    "tiny": Budget("tiny", 64, 3, 20, 1, 1, model_shape=(4, 4), ppo_shape=(4, 4)),
+    "tiny": Budget("tiny", 64, 3, 20, 1, 1, model_shape=(4, 4), ppo_shape=(4, 4), pretrain_steps=4),
 }
 
 
-def config_of(name: str, budget: Budget, seed: int) -> RunConfig:
-    """The run of configuration `name` for `seed` at `budget`."""
+def pretrain_config(name: str, budget: Budget, seed: int) -> RunConfig | None:
+    """The offline pre-training run of configuration `name` for `seed` (None: it has none)."""
+    if "pretrain" not in CONFIGS[name]:
+        return None
+    return RunConfig(preset=budget.preset, steps=budget.pretrain_steps, seed=seed,
+                     eval_every=max(1, budget.pretrain_steps // budget.evals), checkpoint_every=budget.pretrain_steps,
+                     eval_episodes=6, tensorboard=False, **CONFIGS[name]["pretrain"])
+
+
+def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = None) -> RunConfig:
+    """The run of configuration `name` for `seed` at `budget` (from the world model of the
+    run in `init_from`, its pre-training)."""
     options = dict(CONFIGS[name])
     factor = options.pop("frames_factor", 1)
+    options.pop("pretrain", None)
     batch, unroll = budget.ppo_shape if options["variant"] == "ppo" else budget.model_shape
     steps = max(1, budget.frames * factor // (batch * unroll))
     every = max(1, steps // budget.evals)
     return RunConfig(preset=budget.preset, batch=batch, unroll=unroll, steps=steps, seed=seed, eval_every=every,
                      checkpoint_every=every, eval_episodes=budget.eval_episodes, episode_steps=budget.episode_steps,
-                     warmup_steps=budget.warmup_steps, tensorboard=False, **options)
+                     warmup_steps=budget.warmup_steps, tensorboard=False, init_from=str(init_from or ""), **options)
 
 
 def train_or_read(cfg: RunConfig, run_dir: Path) -> float:
@@ -112,13 +132,26 @@ def seed_result(run_dir: Path, budget: Budget) -> dict:
     if cfg.kind == "online" and make_variant(cfg.variant, cfg.arch).predicts_reward:
         _, program, state = restore_learner(run)
         seeds = np.arange(EVAL_SEED, EVAL_SEED + budget.eval_episodes)
-        out["reward_fit"] = reward_fit(program.model, program.params(state), program.game, program.env_params, seeds,
-                                       budget.episode_steps)
+        fit = model_fit(program.model, program.params(state), program.game, program.env_params, seeds,
+                        budget.episode_steps)
+        out["excess_ratio_held_out"] = fit.pop("excess_ratio")
+        out["reward_fit"] = fit
         tail = run.metrics.read()[-max(1, cfg.steps // 4):]
         out["predicted_reward_per_step"] = float(np.mean([r["terms"]["pred_reward"] for r in tail]))
         out["real_reward_per_step"] = float(np.mean([r["reward"] for r in tail]))
         out["excess_ratio_last_quarter"] = float(np.nanmean([r.get("excess_ratio", np.nan) for r in tail]))
     return out
+
+
+def pretrain_result(run_dir: Path) -> dict:
+    """A pre-training run's figures: its data's game frames (training episodes: their frames
+    are what the world model saw), steps, and held-out excess ratio at the end."""
+    run = RunDir(run_dir)
+    cfg = run.read_config()
+    train, _ = load_episodes(cfg, run.data_cache)
+    final = [r for r in run.evals.read() if r["step"] == cfg.steps][-1]
+    return {"pretrain": {"data_frames": int(sum(len(train[i].frames) for i in range(len(train)))),
+                         "steps": cfg.steps, "excess_ratio": final["excess_ratio"]}}
 
 
 def across(values: Sequence[float]) -> dict:
@@ -142,14 +175,24 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
         per_seed = {}
         for seed in seeds:
             run_dir = Path(work) / name / f"seed{seed}"
-            wall = train_or_read(config_of(name, budget, seed), run_dir)
-            per_seed[str(seed)] = {**seed_result(run_dir, budget), "wall_s": wall}
+            pre, pre_dir, pre_wall = pretrain_config(name, budget, seed), None, 0.0
+            if pre is not None:
+                pre_dir = Path(work) / name / f"pretrain{seed}"
+                pre_wall = train_or_read(pre, pre_dir)
+            wall = train_or_read(config_of(name, budget, seed, pre_dir), run_dir)
+            per_seed[str(seed)] = {**seed_result(run_dir, budget), "wall_s": wall + pre_wall}
+            if pre_dir is not None:
+                per_seed[str(seed)].update(pretrain_result(pre_dir))
+                offset = per_seed[str(seed)]["pretrain"]["data_frames"]
+                per_seed[str(seed)]["frames"] += offset
+                per_seed[str(seed)]["curve"] = [[f + offset, r] for f, r in per_seed[str(seed)]["curve"]]
         first = per_seed[str(seeds[0])]
         results["references"] = results["references"] or first["references"]
         row = {"options": CONFIGS[name], "frames": first["frames"], "seeds": per_seed,
                "return": across([s["return"] for s in per_seed.values()]),
                "length": across([s["length"] for s in per_seed.values()])}
-        for key in ("predicted_reward_per_step", "real_reward_per_step", "excess_ratio_last_quarter"):
+        for key in ("predicted_reward_per_step", "real_reward_per_step", "excess_ratio_last_quarter",
+                    "excess_ratio_held_out"):
             if key in first:
                 row[key] = across([s[key] for s in per_seed.values()])
         if "reward_fit" in first:

@@ -4,17 +4,15 @@ drawn on its own data's range, which its title or row label names (a low-contras
 would otherwise be a flat grey field)."""
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure
 
 from cdrl.analysis.report import Model, Run
 from cdrl.data.frames import pixel_bce
-from cdrl.models.base import StepInput, Variant
+from cdrl.evaluation.multistep import open_loop
 
 PREDICTION_SIZE = (12.0, 3.6)
 
@@ -41,28 +39,6 @@ def _as_float(frames: np.ndarray) -> np.ndarray:
     return frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 4))
-def _open_loop(variant: Variant, params, frames, actions, horizon: int):
-    """Logits `[K + horizon - 1, H, W]`: teacher-forced on the K context `frames`, then each
-    step fed with the sigmoid of the model's own previous prediction."""
-    context = frames.shape[0]
-
-    def step(carry, obs, action, first):
-        carry, out = variant.step(params, carry, StepInput(obs[None], action[None], first[None]))
-        return carry, out["logits"][0]
-
-    first = jnp.arange(context) == 0
-    carry, logits = jax.lax.scan(lambda c, x: step(c, *x), variant.init_carry(1), (frames, actions[:context], first))
-
-    def dreamed(state, action):
-        carry, prev = state
-        carry, out = step(carry, jax.nn.sigmoid(prev), action, jnp.array(False))
-        return (carry, out), out
-
-    _, free = jax.lax.scan(dreamed, (carry, logits[-1]), actions[context: context + horizon - 1])
-    return jnp.concatenate([logits, free], axis=0)
-
-
 def open_loop_predictions(model: Model, episode, context: int = 8, horizon: int = 8) -> Rollout:
     """After `context` observed frames the model predicts `horizon` frames o_K .. o_{K+n-1},
     the first from the last observed frame, each later one from its own previous prediction
@@ -74,8 +50,9 @@ def open_loop_predictions(model: Model, episode, context: int = 8, horizon: int 
     horizon = max(1, min(horizon, n - context))
     frames = _as_float(episode.frames[: context + horizon])
     actions = np.asarray(episode.actions[: context + horizon], np.float32)
-    logits = _open_loop(model.variant, model.params, jnp.asarray(frames[:context]), jnp.asarray(actions), horizon)
-    return Rollout(frames=frames, logits=np.asarray(logits), context=context)
+    logits = open_loop(model.variant, model.params, jnp.asarray(frames[:context, None]),
+                       jnp.asarray(actions[:, None]), horizon)
+    return Rollout(frames=frames, logits=np.asarray(logits[:, 0]), context=context)
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:

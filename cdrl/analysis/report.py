@@ -11,16 +11,16 @@ import dataclasses
 from pathlib import Path
 from typing import Any, Sequence
 
-import jax
 import numpy as np
 
 from cdrl.evaluation.metrics import check_episodes, evaluate, prefixed
+from cdrl.evaluation.multistep import multistep_scores
 from cdrl.models import make_variant
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes
-from cdrl.training.step import init_state
+from cdrl.runs.init_from import restore_params
 
 # The thesis reports the training loss as a running average over the previous 4096 samples.
 LOSS_WINDOW_SAMPLES = 4096
@@ -83,17 +83,8 @@ def load_run(run_dir: str | Path) -> Run:
 def restore_model(run: Run) -> Model:
     """The run's latest good checkpoint. FileNotFoundError if it has none;
     `cdrl.runs.checkpoint.CheckpointError` (a RuntimeError) if every one is corrupt."""
-    cfg = run.config
-    directory = RunDir(run.path).checkpoint_dir
-    if not directory.is_dir() or not any(p.name.isdigit() for p in directory.iterdir()):
-        raise FileNotFoundError(f"{directory} holds no checkpoint")
-    variant = make_variant(cfg.variant, cfg.arch)
-    hp = cfg.hparams(variant)
-    # The abstract shape of a state is all a restore needs; tracing it is much cheaper than
-    # initialising one eagerly.
-    like = jax.eval_shape(lambda: init_state(variant, jax.random.PRNGKey(0), cfg.batch, hp))
-    state, meta = RunDir(run.path).read_checkpoints().restore_newest(like)
-    return Model(variant=variant, params=state.params, step=int(meta["step"]))
+    cfg, params, step = restore_params(RunDir(run.path))
+    return Model(variant=make_variant(cfg.variant, cfg.arch), params=params, step=step)
 
 
 def run_episodes(run: Run, n: int) -> tuple[list, list]:
@@ -167,14 +158,41 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def eval_runs(run_dirs: Sequence[str | Path], episodes: int | None = None) -> list[dict]:
+def format_open_loop(rows: Sequence[dict]) -> str:
+    """The open-loop table: per run the held-out excess ratio at steps 1, 5, 10, 15, ... K."""
+    horizon = rows[0]["open_loop"]["horizon"]
+    steps = sorted({1, horizon} | set(range(5, horizon, 5)))
+    lines = [f"open loop after {rows[0]['open_loop']['context']} real frames: held-out excess ratio at step k "
+             "(the model fed its own predictions; 1 = copying the last real frame for k steps)",
+             f"{'run':32s} {'windows':>8s} " + " ".join(f"{'k=' + str(k):>7s}" for k in steps)]
+    for row in rows:
+        scores = row["open_loop"]
+        lines.append(f"{row['run'][-32:]:32s} {scores['windows']:8d} "
+                     + " ".join(f"{scores['excess_ratio'][k - 1]:7.3f}" for k in steps))
+    return "\n".join(lines)
+
+
+def eval_runs(run_dirs: Sequence[str | Path], episodes: int | None = None, horizon: int | None = None,
+              context: int = 8) -> list[dict]:
     """Evaluate each run's latest good checkpoint on its held-out episodes (default: the run's
-    `eval_episodes`) and on as many training episodes; print a table; return the rows."""
+    `eval_episodes`) and on as many training episodes; print a table; return the rows. With
+    `horizon`, also the open-loop scores on the same held-out episodes
+    (`cdrl.evaluation.multistep`: `context` real frames, then `horizon` steps fed its own
+    predictions) in each row's `open_loop`, and their table."""
     check_episodes(episodes)
+    for name, value in (("horizon", horizon), ("context", context)):
+        if value is not None and value < 1:
+            raise ValueError(f"{name} must be >= 1, got {value}")
     runs = [load_run(d) for d in run_dirs]
     rows = []
     for run in runs:
         n = episodes if episodes is not None else run.config.eval_episodes
-        rows.append(evaluate_model(run, restore_model(run), n))
+        model, data = restore_model(run), run_episodes(run, n)
+        row = evaluate_model(run, model, n, data)
+        if horizon is not None:
+            row["open_loop"] = multistep_scores(model.variant, model.params, data[1], context, horizon)
+        rows.append(row)
     print(format_table(rows))
+    if horizon is not None:
+        print(format_open_loop(rows))
     return rows

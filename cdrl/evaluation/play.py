@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from cdrl.data.frames import resize_obs
+from cdrl.data.frames import copy_last_bce, pixel_bce, resize_obs, target_entropy
+from cdrl.evaluation.metrics import excess_ratio
 from cdrl.models.base import StepInput, Variant
 
 
@@ -128,9 +129,10 @@ def compare_policies(game, env_params, learned: dict[str, tuple], episodes: int,
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 5))
-def _reward_trace(variant: Variant, game, params, env_params, keys, max_steps: int):
+def _model_trace(variant: Variant, game, params, env_params, keys, max_steps: int):
     """Per game and step `[N, T]`: the controller's predicted reward r̃_{t+1}, the real r_{t+1},
-    and whether the game was still on."""
+    whether the game was still on, and on the frames the BCE of the predicted õ_{t+1}, of
+    copying o_t, and the floor (the target's entropy)."""
     def one_game(key):
         k_reset, k_run = jax.random.split(key)
         obs, env_state = game.reset(k_reset, env_params)
@@ -143,7 +145,9 @@ def _reward_trace(variant: Variant, game, params, env_params, keys, max_steps: i
             carry, out = variant.step(params, pstate["carry"], x)
             pstate = {"carry": carry, "action": out["action"], "is_first": jnp.zeros((1,), bool)}
             obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, x.action[0], env_params)
-            return (env_state, obs, pstate, key, alive & ~(term | trunc)), (out["reward"][0], reward, alive)
+            target = resize_obs(obs, variant.arch.image_size)[None]
+            frames = (pixel_bce(out["logits"], target)[0], copy_last_bce(x.obs, target)[0], target_entropy(target)[0])
+            return (env_state, obs, pstate, key, alive & ~(term | trunc)), (out["reward"][0], reward, alive, *frames)
 
         c0 = (env_state, obs, controller_fns(variant)[0](None, params), k_run, jnp.array(True))
         return jax.lax.scan(body, c0, None, length=max_steps)[1]
@@ -151,18 +155,21 @@ def _reward_trace(variant: Variant, game, params, env_params, keys, max_steps: i
     return jax.vmap(one_game)(keys)
 
 
-def reward_fit(variant: Variant, params, game, env_params, seeds, max_steps: int) -> dict[str, float]:
-    """How well a controller variant's reward head predicts the reward its own noise-free play
-    earns on the held-out games `seeds`: the correlation of r̃_{t+1} with r_{t+1} over every
-    step played, and R² = 1 - MSE / variance of r (0: no better than the mean reward)."""
+def model_fit(variant: Variant, params, game, env_params, seeds, max_steps: int) -> dict[str, float]:
+    """How well a controller variant's world model predicts its own noise-free play on the
+    held-out games `seeds`, over every step played: the reward head's correlation of r̃_{t+1}
+    with r_{t+1} and R² = 1 - MSE / variance of r (0: no better than the mean reward), and the
+    next-frame `excess_ratio` (BCE - floor) / (copy-last BCE - floor) of its predicted frames."""
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
-    pred, real, alive = (np.asarray(x) for x in _reward_trace(variant, game, params, env_params, keys, int(max_steps)))
+    trace = [np.asarray(x) for x in _model_trace(variant, game, params, env_params, keys, int(max_steps))]
+    pred, real, alive = trace[:3]
+    bce, copy, floor = (float(x[alive].astype(np.float64).mean()) for x in trace[3:])
     pred, real = pred[alive].astype(np.float64), real[alive].astype(np.float64)
     var = float(np.var(real))
     corr = float(np.corrcoef(pred, real)[0, 1]) if np.std(pred) > 0 and var > 0 else float("nan")
     r2 = 1.0 - float(np.mean(np.square(pred - real))) / var if var > 0 else float("nan")
     return {"correlation": corr, "r2": r2, "steps": int(alive.sum()), "mean_predicted": float(pred.mean()),
-            "mean_real": float(real.mean())}
+            "mean_real": float(real.mean()), "excess_ratio": excess_ratio(bce, copy, floor)}
 
 
 def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:

@@ -89,10 +89,10 @@ class OfflineJob(TrainJob):
 
 
 def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None,
-                      allow_data_change: bool = False) -> dict:
-    """Train (or resume) the offline run of `cfg` in `run`. Its data is checked, and on a
-    resume compared with the fingerprint the run recorded (`RunDir.check_data`), before
-    anything is written."""
+                      allow_data_change: bool = False, init_params=None) -> dict:
+    """Train (or resume) the offline run of `cfg` in `run`, from the parameters `init_params`
+    if given (`--init-from`). Its data is checked, and on a resume compared with the
+    fingerprint the run recorded (`RunDir.check_data`), before anything is written."""
     parallel = DataParallel.create(cfg.devices, cfg.batch)
     writes = is_primary()
 
@@ -109,6 +109,8 @@ def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool 
     stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size,
                          action_dim=cfg.arch.action_dim, seed=cfg.seed)
     state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, cfg.hparams(variant))
+    if init_params is not None:
+        state = state.replace(params=init_params)
     if parallel is not None:
         state = parallel.place_state(state)
     opened = run.open(cfg, state, resume, write=writes, data=data, allow_data_change=allow_data_change)

@@ -34,7 +34,7 @@ from cdrl.training.loop import Job, Plan, host_loop
 from cdrl.training.monitor import group_names
 from cdrl.training.dream import DreamConfig, DreamHParams, DreamState, dream_step, init_dream
 from cdrl.training.online import OnlineConfig, OnlineHParams, OnlineState, init_online, online_step
-from cdrl.training.optim import HParams, OptHParams
+from cdrl.training.optim import OptHParams
 from cdrl.training.ppo import PPOConfig, PPOHParams, init_ppo, ppo_policy, ppo_step
 
 
@@ -148,9 +148,7 @@ def learner(cfg: RunConfig) -> Learner:
                        ("noise_std", "ascent_on"))
     dcfg = DreamConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay, model_updates=cfg.model_updates,
                        horizon=cfg.horizon, controller=cfg.controller)
-    model = HParams.create(variant, opt=cfg.opt_hparams(), diverge_threshold=cfg.diverge_threshold,
-                           loss_weights={"reward_mse": cfg.reward_weight} if variant.predicts_reward else None)
-    hp = DreamHParams.create(model, ctrl_opt=OptHParams.create("adam", lr=cfg.ctrl_lr, grad_clip=100.0),
+    hp = DreamHParams.create(cfg.hparams(variant), ctrl_opt=OptHParams.create("adam", lr=cfg.ctrl_lr, grad_clip=100.0),
                              ascent=cfg.ascent, explore=cfg.noise_std, explore_decay=cfg.noise_decay,
                              warmup_steps=cfg.warmup_steps, gamma=cfg.gamma, lam=cfg.gae_lambda,
                              entropy=cfg.entropy_coef)
@@ -167,15 +165,28 @@ def model_params(state):
     raise TypeError(f"{type(state).__name__} holds no world model")
 
 
+def with_model_params(state, params):
+    """An online program's `state` with the world model's parameters `params`."""
+    if isinstance(state, DreamState):
+        return state.replace(model=state.model.replace(params=params))
+    if isinstance(state, OnlineState):
+        return state.replace(train=state.train.replace(params=params))
+    raise TypeError(f"{type(state).__name__} holds no world model")
+
+
 def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None,
-                     allow_data_change: bool = False) -> dict:
+                     allow_data_change: bool = False, init_params=None) -> dict:
     """A controller variant, or PPO, trained against the game in `run`; ends with the policy
-    table on stderr. (It plays the game: there is no data set to change, so
-    `allow_data_change` has nothing to allow.)"""
+    table on stderr. `init_params`: the world model's parameters to start from (`--init-from`).
+    (It plays the game: there is no data set to change, so `allow_data_change` has nothing to
+    allow.)"""
     if not resume:
         cfg = with_obs_norm(cfg, run.data_cache)
     program = learner(cfg)
-    opened = run.open(cfg, program.fresh(cfg.seed), resume)
+    state = program.fresh(cfg.seed)
+    if init_params is not None:
+        state = with_model_params(state, init_params)
+    opened = run.open(cfg, state, resume)
     job = program.job(cfg, opened.checkpoints, opened.state)
     plan = Plan(steps=cfg.steps, start=opened.start, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every)
     sink = run_writer(run, opened.start, cfg.tensorboard)
@@ -193,6 +204,9 @@ def restore_learner(run: RunDir) -> tuple[RunConfig, Learner, Any]:
     """(config, learner, state of the latest good checkpoint) of a run that plays the game."""
     cfg = run.read_config()
     if cfg.kind == "offline":
+        if make_variant(cfg.variant, cfg.arch).has_controller:
+            raise ValueError(f"run {run.path} trains the world model of {cfg.variant!r} offline (controller none), "
+                             "so it has no controller to play with; train one from it with --init-from")
         raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
     program = learner(cfg)
     state, _ = run.read_checkpoints().restore_newest(jax.eval_shape(lambda: program.fresh(cfg.seed)))

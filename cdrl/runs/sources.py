@@ -148,8 +148,9 @@ def stats_episodes(cfg: RunConfig, cache_root: Path) -> Sequence[Episode]:
 
 
 def with_obs_norm(cfg: RunConfig, cache_root: Path) -> RunConfig:
-    """`cfg` with `obs_mean`/`obs_std` measured (`stats_episodes`) when `cfg.obs_norm` is 'data'."""
-    if cfg.obs_norm != "data":
+    """`cfg` with `obs_mean`/`obs_std` measured (`stats_episodes`) when `cfg.obs_norm` is 'data'
+    (a run started from another, `init_from`, keeps the normalisation its model learnt on)."""
+    if cfg.obs_norm != "data" or cfg.init_from:
         return cfg
     mean, std = frame_stats(stats_episodes(cfg, cache_root))
     return dataclasses.replace(cfg, obs_mean=mean, obs_std=std)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import all_or_none, is_primary
+from cdrl.runs.init_from import source_of
 from cdrl.runs.offline import offline_train_run
 from cdrl.runs.online import online_train_run
 from cdrl.runs.rundir import RunDir
@@ -38,5 +39,9 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
         if resolved.kind != "offline" and resolved.devices != 1:
             raise ValueError(f"devices={resolved.devices}: controller variants and ppo train online on one device "
                              "(data-parallel training covers the offline variants); use --devices 1")
+        source = None if resume else source_of(resolved)
+        if source is not None:
+            resolved = source[0]
         runs = {"offline": offline_train_run, "online": online_train_run, "ppo": online_train_run}
-        return runs[resolved.kind](resolved, run, resume, progress, allow_data_change)
+        return runs[resolved.kind](resolved, run, resume, progress, allow_data_change,
+                                   init_params=None if source is None else source[1])
