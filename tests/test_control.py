@@ -264,3 +264,25 @@ def test_a_world_model_learnt_offline_starts_a_controller_run(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "variant 'final_proposal'" in err and "'reward_prediction'" in err
     assert not (tmp_path / "other" / "config.json").exists()
+
+
+@pytest.mark.e2e
+def test_the_experiment_counts_a_pretrained_world_models_data(tmp_path):
+    """`critic-pre` trains its world model offline first and starts the controller run from it:
+    its game frames and its learning curve count the pre-training data's frames, and the
+    pre-training's own figures are reported."""
+    from cdrl.analysis import control
+    from cdrl.runs.rundir import RunDir
+
+    budget = control.BUDGETS["tiny"]
+    results = control.run_experiment(["critic-pre"], budget, [0], tmp_path)
+    seed = results["configs"]["critic-pre"]["seeds"]["0"]
+    pre = RunDir(tmp_path / "critic-pre" / "pretrain0").read_config()
+    online = RunDir(tmp_path / "critic-pre" / "seed0").read_config()
+    assert pre.kind == "offline" and pre.steps == budget.pretrain_steps and online.init_from.endswith("pretrain0")
+    train, _ = control.load_episodes(pre, tmp_path / "critic-pre" / "data-cache")
+    data_frames = sum(len(train[i].frames) for i in range(len(train)))
+    assert seed["pretrain"]["data_frames"] == data_frames > 0
+    assert seed["frames"] == online.steps * online.batch * online.unroll + data_frames
+    assert seed["curve"][0][0] == online.eval_every * online.batch * online.unroll + data_frames
+    assert np.isfinite(seed["pretrain"]["excess_ratio"]) and np.isfinite(seed["excess_ratio_held_out"])

@@ -159,6 +159,28 @@ def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, b
                           _xla_conv_transpose(stride, padding), x, k, 3)
 
 
+@pytest.mark.parametrize("backend,expected", [("cpu", "cpu"), ("gpu", "native"), ("tpu", "native")])
+def test_the_convolutions_are_chosen_by_backend(monkeypatch, backend, expected):
+    """On the CPU the custom formulations (the gradient through `custom_vjp`, the transposed
+    convolution in sub-pixel form); on GPU and TPU XLA's native convolutions as they are, the
+    transposed one input-dilated, with XLA's own gradients; both the same function."""
+    from cdrl.models import conv
+
+    monkeypatch.setattr(conv.jax, "default_backend", lambda: backend)
+    assert conv.formulation() == expected
+    rng = np.random.default_rng(6)
+    x = jnp.asarray(rng.normal(size=(2, 10, 10, 3)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(4, 4, 3, 5)), jnp.float32)
+    strided = str(jax.make_jaxpr(lambda x, k: nets.conv2d(x, k, 2, 1))(x, k))
+    transposed = str(jax.make_jaxpr(lambda x, k: nets.conv_transpose(x, k, 2, 1))(x, k))
+    assert ("custom_vjp" in strided) == ("custom_vjp" in transposed) == (expected == "cpu")
+    assert ("lhs_dilation=(2, 2)" in transposed) == (expected == "native")
+    _assert_same_function(lambda a, b: nets.conv2d(a, b, 2, 1), lambda a, b: _xla_conv(a, b, 2, 1), x, k, 7)
+    monkeypatch.setattr(conv, "FORMULATION", "fast")
+    with pytest.raises(ValueError, match="CDRL_CONV_FORMULATION must be one of auto, cpu, native"):
+        conv.formulation()
+
+
 @pytest.mark.default_opt
 def test_kernel_gradient_tiles_cover_the_batch(monkeypatch):
     """Tiles of 2 frames, at most 3 tiles: 20 frames go in 3 tiles of 7, 7 and 6."""

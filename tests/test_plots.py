@@ -36,9 +36,11 @@ def test_plot_runs_writes_every_figure_at_its_size(runs):
     written = plot_runs(runs)
     out = runs[0] / "plots"
     # Sizes in inches: loss/code error 8x5; ratios 5 per group x 4.5 (two groups on the tiny
-    # preset); prediction 12x3.6; rollout 1 + 1.5 per frame (8) x 3.6; bars max(6, 2 + 1.8 per run) x 5.
+    # preset); prediction 12x3.6; rollout 1 + 1.5 per frame (8) x 3.6; bars max(6, 2 + 1.8 per run) x 5;
+    # the open-loop scores 8x5.
     expected = {
         "loss.png": (8, 5), "excess.png": (8, 5), "ratios.png": (10, 4.5), "code_error.png": (8, 5),
+        "open_loop.png": (8, 5),
         "prediction_a.png": (12, 3.6), "prediction_b.png": (12, 3.6),
         "rollout_a.png": (13, 3.6), "rollout_b.png": (13, 3.6), "bce_bars.png": (6, 5),
     }

@@ -11,7 +11,9 @@
 - `prediction_<run>.png`: input frame, predicted next frame, true next frame, difference (fig 5.2);
 - `rollout_<run>.png`: an open-loop rollout fed with the model's own predictions (these two
   figures: `cdrl.analysis.frames`);
-- `bce_bars.png`: train vs held-out BCE per run, with the copy-last-frame baseline (fig 5.9).
+- `bce_bars.png`: train vs held-out BCE per run, with the copy-last-frame baseline (fig 5.9);
+- `open_loop.png`: the held-out excess ratio at every step of predictions fed back for 15 steps
+  (`cdrl.evaluation.multistep`), every run, against copying the last real frame as long.
 
 Every figure has a fixed size in inches (the `*_SIZE` constants and functions) at `DPI`, so a
 figure's pixel size is known in advance. Files appear atomically (`cdrl.data.atomic`: a
@@ -37,12 +39,14 @@ from cdrl.analysis.report import (Run, evaluate_model, load_run, restore_model, 
                                   training_loss)
 from cdrl.data.atomic import atomic_write
 from cdrl.evaluation.metrics import excess_ratio
+from cdrl.evaluation.multistep import multistep_scores
 from cdrl.runs.checkpoint import CheckpointError
 from cdrl.runs.rundir import RunDir
 
 DPI = 100
 LOSS_SIZE = (8.0, 5.0)
 CODE_ERROR_SIZE = (8.0, 5.0)
+OPEN_LOOP_STEPS = 15  # the open-loop figure's horizon (shorter where the episodes are)
 # The thesis's monitored groups: encoder layer 4 kernel and decoder layer 3 kernel (0-based names).
 DEFAULT_RATIO_GROUPS = ("obs_enc/conv3/kernel", "obs_dec/deconv2/kernel")
 RATIO_WINDOW = 256
@@ -180,6 +184,24 @@ def excess_figure(runs: Sequence[Run]) -> Figure:
                      "(BCE - entropy floor) / (copy-last BCE - entropy floor), held-out frames")
 
 
+def open_loop_figure(runs: Sequence[Run], scores: Sequence[dict]) -> Figure:
+    """The held-out excess ratio at steps 1 .. K of open-loop prediction (`multistep_scores`
+    of each run), against the line at 1: copying the last real frame for as many steps."""
+    fig = Figure(figsize=LOSS_SIZE)
+    ax = fig.add_subplot()
+    for run, score, style in zip(runs, scores, _styles()):
+        steps = np.arange(1, score["horizon"] + 1)
+        ax.plot(steps, score["excess_ratio"], style, marker="o", ms=3, label=f"{run.label} ({score['windows']} windows)")
+    ax.axhline(1.0, color="black", lw=1, ls=":", label="copy the last real frame")
+    ax.set_xlabel(f"steps fed its own predictions, after {scores[0]['context']} real frames")
+    ax.set_ylabel("held-out excess ratio at that step")
+    ax.set_title("open-loop prediction: (BCE - floor) / (copy-last BCE - floor) per step")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
 def has_code_error(run: Run) -> bool:
     return any("code_pred_mse" in e for e in run.evals) or any("code_pred_mse" in m.get("terms", {}) for m in run.metrics)
 
@@ -271,14 +293,20 @@ def plot_runs(run_dirs: Sequence[str | Path], out_dir: str | Path | None = None,
         written.append(save_figure(excess_figure(runs), out / "excess.png"))
     if any(map(has_code_error, runs)):
         written.append(save_figure(code_error_figure(runs), out / "code_error.png"))
-    rows = []
+    rows, scores = [], []
     for run, model, stem in zip(runs, models, file_stems(runs)):
         train, test = run_episodes(run, episodes)
         rows.append(evaluate_model(run, model, episodes, data=(train, test)))
+        longest = max(len(test[i]) for i in range(len(test)))
+        if longest > context:
+            scores.append(multistep_scores(model.variant, model.params, test, context,
+                                           min(OPEN_LOOP_STEPS, longest - context)))
         rollout = open_loop_predictions(model, test[0], context, horizon)
         written.append(save_figure(prediction_figure(run, model, rollout), out / f"prediction_{stem}.png"))
         written.append(save_figure(rollout_figure(run, model, rollout), out / f"rollout_{stem}.png"))
     written.append(save_figure(bce_bars_figure(rows), out / "bce_bars.png"))
+    if len(scores) == len(runs):
+        written.append(save_figure(open_loop_figure(runs, scores), out / "open_loop.png"))
     return written
 
 

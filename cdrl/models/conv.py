@@ -1,5 +1,6 @@
 """Strided and transposed convolutions (NHWC), each pass in the formulation XLA's CPU backend
-runs fastest.
+runs fastest; on other backends (GPU, TPU) XLA's native convolutions and their own gradients,
+which cuDNN and the TPU's convolution units run directly (`formulation`).
 
 A convolution and its transpose are each other's input gradient, so the two share three
 primitives, chosen by per-layer measurement at the thesis's size (`benchmarks/layer_timings.py`
@@ -29,12 +30,17 @@ kernel use XLA's convolutions as they are.
 """
 from __future__ import annotations
 
+import os
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 
 _DIMS = ("NHWC", "HWIO", "NHWC")
+FORMULATIONS = ("auto", "cpu", "native")
+# Which formulation to trace: "auto" (the default) picks by the default backend; "cpu" or
+# "native" forces one (the environment variable CDRL_CONV_FORMULATION sets it at import).
+FORMULATION = os.environ.get("CDRL_CONV_FORMULATION", "auto")
 # Frames per tile of the kernel-gradient convolution, and the most tiles one gradient is
 # split into (beyond, tiles grow: the tiles are unrolled in the program, so their number
 # bounds the compile time).
@@ -185,9 +191,30 @@ def _transposed_bwd(stride, padding, res, ct):
 _transposed.defvjp(_transposed_fwd, _transposed_bwd)
 
 
+def formulation() -> str:
+    """The formulation traced now: "cpu" (this module's, chosen by timing XLA's CPU backend)
+    where JAX's default backend is the CPU, "native" (XLA's convolutions as they are) on any
+    other, unless `FORMULATION` forces one. Chosen when a function is traced, so a program
+    compiled for one backend keeps its formulation."""
+    if FORMULATION not in FORMULATIONS:
+        raise ValueError(f"CDRL_CONV_FORMULATION must be one of {', '.join(FORMULATIONS)}, got {FORMULATION!r}")
+    if FORMULATION != "auto":
+        return FORMULATION
+    return "cpu" if jax.default_backend() == "cpu" else "native"
+
+
+def _native_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    """The transposed convolution as XLA's input-dilated convolution with the flipped kernel."""
+    pad = kernel.shape[0] - 1 - padding
+    return jax.lax.conv_general_dilated(x, kernel[::-1, ::-1], window_strides=(1, 1), padding=[(pad, pad)] * 2,
+                                        lhs_dilation=(stride, stride), dimension_numbers=_DIMS)
+
+
 def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
     """Strided convolution: NHWC input, HWIO kernel, symmetric zero padding (see the module
     docstring for the formulation of each pass)."""
+    if formulation() == "native":
+        return _native(x, kernel, stride, padding)
     k, _, c_in, c_out = kernel.shape
     n, h, w, _ = x.shape
     if h + 2 * padding == k and w + 2 * padding == k:  # one window: a dense layer
@@ -203,16 +230,14 @@ def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -
     [in, out, kh, kw]): out = (in - 1) * stride - 2 * padding + k. Every input pixel scatters
     `x @ kernel` into a k x k window of the output at stride `stride`."""
     k, _, c_in, c_out = kernel.shape
-    pad = k - 1 - padding
-    if pad < 0:
+    if k - 1 - padding < 0:
         raise ValueError(f"transposed convolution needs padding <= kernel - 1, got {padding} for {k}")
+    if formulation() == "native":
+        return _native_transpose(x, kernel, stride, padding)
     n, h, w, _ = x.shape
     if h == 1 and w == 1:  # one input pixel: a dense layer onto the k x k window
         y = x.reshape(n, c_in) @ kernel.transpose(2, 0, 1, 3).reshape(c_in, k * k * c_out)
         return y.reshape(n, k, k, c_out)[:, padding: k - padding, padding: k - padding]
     if k % stride:
-        return jax.lax.conv_general_dilated(
-            x, kernel[::-1, ::-1], window_strides=(1, 1), padding=[(pad, pad)] * 2,
-            lhs_dilation=(stride, stride), dimension_numbers=_DIMS,
-        )
+        return _native_transpose(x, kernel, stride, padding)
     return _transposed(x, kernel, stride, padding)

@@ -1,0 +1,117 @@
+"""Is the coming pellet in the frame, and in a world model's features?
+
+Linear (ridge) probes for "a pellet is eaten on arriving at o_{t+1}" (the real reward r_{t+1} > 0)
+on the episodes of a run's data set, fitted on its training episodes and scored by the AUC on
+its held-out ones (0.5: chance):
+
+- from the pixels around the player's head (the centre quarter of the frame; the view follows
+  the head) and the action a_t, at the run's resolution and at the thesis's 150 x 150 (the same
+  games, collected again at that size);
+- from the world model's core output h_t (`Variant.features`, after the step that saw o_t and a_t);
+- the model's own reward head r̃_{t+1}, as it is.
+
+    .venv/bin/python benchmarks/reward_probe.py RUN_DIR [--out FILE]
+
+RUN_DIR: a controller variant's run (offline, `--controller none`, or online) whose data set
+is the built-in game's. Ends with one JSON line.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from common import emit
+
+RIDGE = 10.0  # the probes' L2 penalty, on standardised inputs
+
+
+def auc(score: np.ndarray, positive: np.ndarray) -> float:
+    """The probability that a positive step scores above a negative one (ties count half)."""
+    pos, neg = score[positive], score[~positive]
+    return float(np.mean(pos[:, None] > neg[None, :]) + 0.5 * np.mean(pos[:, None] == neg[None, :]))
+
+
+def ridge_auc(x_train, y_train, x_test, y_test) -> float:
+    mu, sd = x_train.mean(0), x_train.std(0) + 1e-6
+    a = np.c_[(x_train - mu) / sd, np.ones(len(x_train))]
+    b = np.c_[(x_test - mu) / sd, np.ones(len(x_test))]
+    w = np.linalg.solve(a.T @ a + RIDGE * np.eye(a.shape[1]), a.T @ y_train.astype(float))
+    return auc(b @ w, y_test)
+
+
+def pixels(episodes):
+    """(centre-quarter pixels of o_t with a_t, pellet eaten at t+1) over every step."""
+    xs, ys = [], []
+    for i in range(len(episodes)):
+        ep = episodes[i]
+        frames, n = np.asarray(ep.frames, np.float32) / 255.0, len(ep.frames) - 1
+        size = frames.shape[1]
+        lo, hi = size // 2 - size // 8, size // 2 + size // 8
+        xs.append(np.c_[frames[:n, lo:hi, lo:hi].reshape(n, -1), ep.actions[:n]])
+        ys.append(ep.rewards[1: n + 1] > 0)
+    return np.concatenate(xs), np.concatenate(ys)
+
+
+def model_outputs(variant, params, episodes):
+    """(h_t, r̃_{t+1}) of the model teacher-forced on every episode, step by step."""
+    import jax
+    import jax.numpy as jnp
+
+    from cdrl.models.base import StepInput
+
+    @jax.jit
+    def unroll(obs, action, first):
+        def body(carry, x):
+            carry, out = variant.step(params, carry, x)
+            return carry, (variant.features(carry), out["reward"])
+        return jax.lax.scan(body, variant.init_carry(1), StepInput(obs=obs, action=action, is_first=first))[1]
+
+    hs, rs = [], []
+    for i in range(len(episodes)):
+        ep = episodes[i]
+        n = len(ep.frames) - 1
+        frames = jnp.asarray(np.asarray(ep.frames[:n, None], np.float32) / 255.0)
+        h, r = unroll(frames, jnp.asarray(ep.actions[:n, None], jnp.float32), jnp.arange(n)[:, None] == 0)
+        hs.append(np.asarray(h[:, 0]))
+        rs.append(np.asarray(r[:, 0]))
+    return np.concatenate(hs), np.concatenate(rs)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", help="a controller variant's run on the built-in game's data")
+    parser.add_argument("--out", default=None, help="also write the JSON result to this file")
+    args = parser.parse_args(argv)
+    from cdrl.models import make_variant
+    from cdrl.runs.init_from import restore_params
+    from cdrl.runs.rundir import RunDir
+    from cdrl.runs.sources import load_episodes
+
+    run = RunDir(args.run_dir)
+    cfg, params, step = restore_params(run)
+    variant = make_variant(cfg.variant, cfg.arch)
+    if not variant.predicts_reward or cfg.data != "game":
+        raise SystemExit(f"{args.run_dir}: needs a reward variant's run on the built-in game's data")
+    train, test = load_episodes(cfg, run.data_cache)
+    result = {"run": str(run.path), "variant": cfg.variant, "preset": cfg.preset, "step": step, "ridge": RIDGE}
+    (x_tr, y_tr), (x_te, y_te) = pixels(train), pixels(test)
+    result["train_steps"], result["test_steps"] = len(y_tr), len(y_te)
+    result["pellet_steps"] = {"train": int(y_tr.sum()), "test": int(y_te.sum())}
+    result["auc_pixels"] = {cfg.preset: ridge_auc(x_tr, y_tr, x_te, y_te)}
+    if cfg.preset != "thesis":
+        big = dataclasses.replace(cfg, preset="thesis", obs_mean=0.0, obs_std=1.0)
+        big_train, big_test = load_episodes(big, run.data_cache)
+        result["auc_pixels"]["thesis"] = ridge_auc(*pixels(big_train), *pixels(big_test))
+    (h_tr, _), (h_te, r_te) = model_outputs(variant, params, train), model_outputs(variant, params, test)
+    result["auc_features"] = ridge_auc(h_tr, y_tr, h_te, y_te)
+    result["auc_reward_head"] = auc(r_te, y_te)
+    emit(result, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
