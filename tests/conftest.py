@@ -12,6 +12,7 @@ import os
 import tempfile
 
 import jax
+import pytest
 
 NO_LLVM_OPT = "--xla_backend_optimization_level=0"
 # CDRL_TEST_XLA_OPT=default: compile at XLA's default level, as users' programs and the
@@ -35,3 +36,14 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_compilation_cache_max_size", CACHE_LIMIT)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop the compiled programs of a test module when it ends. Each one stays mapped in the
+    worker until JAX's caches are cleared, about six memory maps a program (measured), and the
+    kernel allows 65 530: a worker that kept the whole suite's programs segfaulted in XLA while
+    serialising the next one (a fresh clone's `make test`, in test_online). A later module that
+    needs a program again loads it from the persistent cache."""
+    yield
+    jax.clear_caches()

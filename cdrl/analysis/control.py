@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+import jax
 import numpy as np
 import scipy.stats
 
@@ -181,6 +182,10 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
                 pre_wall = train_or_read(pre, pre_dir)
             wall = train_or_read(config_of(name, budget, seed, pre_dir), run_dir)
             per_seed[str(seed)] = {**seed_result(run_dir, budget), "wall_s": wall + pre_wall}
+            # Every seed's programs would stay mapped in this process (about six memory maps each):
+            # a whole experiment ran out of the JIT's memory ("LLVM ERROR: Unable to allocate
+            # section memory"). The next seed loads them again from the compilation cache.
+            jax.clear_caches()
             if pre_dir is not None:
                 per_seed[str(seed)].update(pretrain_result(pre_dir))
                 offset = per_seed[str(seed)]["pretrain"]["data_frames"]
