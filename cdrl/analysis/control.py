@@ -181,16 +181,17 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
                 pre_dir = Path(work) / name / f"pretrain{seed}"
                 pre_wall = train_or_read(pre, pre_dir)
             wall = train_or_read(config_of(name, budget, seed, pre_dir), run_dir)
-            per_seed[str(seed)] = {**seed_result(run_dir, budget), "wall_s": wall + pre_wall}
+            result = {**seed_result(run_dir, budget), "wall_s": wall + pre_wall}
+            if pre_dir is not None:  # the pre-training's game frames count too
+                result.update(pretrain_result(pre_dir))
+                offset = result["pretrain"]["data_frames"]
+                result["frames"] += offset
+                result["curve"] = [[f + offset, r] for f, r in result["curve"]]
+            per_seed[str(seed)] = result
             # Every seed's programs would stay mapped in this process (about six memory maps each):
             # a whole experiment ran out of the JIT's memory ("LLVM ERROR: Unable to allocate
             # section memory"). The next seed loads them again from the compilation cache.
             jax.clear_caches()
-            if pre_dir is not None:
-                per_seed[str(seed)].update(pretrain_result(pre_dir))
-                offset = per_seed[str(seed)]["pretrain"]["data_frames"]
-                per_seed[str(seed)]["frames"] += offset
-                per_seed[str(seed)]["curve"] = [[f + offset, r] for f, r in per_seed[str(seed)]["curve"]]
         first = per_seed[str(seeds[0])]
         results["references"] = results["references"] or first["references"]
         row = {"options": CONFIGS[name], "frames": first["frames"], "seeds": per_seed,

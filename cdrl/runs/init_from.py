@@ -2,7 +2,7 @@
 
 The typical use is a world model learnt offline first, on recorded episodes of the game
 (`--controller none`: a controller variant trained as the observation variants are,
-teacher-forced on the recorded actions, its reward head on the recorded rewards), then trained
+teacher-forced on the recorded actions, its reward term off by default), then trained
 further online while its controller learns (`--controller critic --init-from RUN_DIR`). The
 source is any run of the same variant and preset, offline or online; its newest good
 checkpoint's parameters replace the fresh ones (the optimiser's state starts afresh) and its
