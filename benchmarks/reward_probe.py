@@ -8,7 +8,10 @@ its held-out ones (0.5: chance):
   the head) and the action a_t, at the run's resolution and at the thesis's 150 x 150 (the same
   games, collected again at that size);
 - from the world model's core output h_t (`Variant.features`, after the step that saw o_t and a_t);
-- the model's own reward head r̃_{t+1}, as it is.
+- the model's own reward head r̃_{t+1}, as it is;
+
+and, to say why a reward term shapes so little of the core, the norms of each loss term's
+gradient (unweighted) per kernel at the run's initial parameters, on its first training chunk.
 
     .venv/bin/python benchmarks/reward_probe.py RUN_DIR [--out FILE]
 
@@ -81,6 +84,30 @@ def model_outputs(variant, params, episodes):
     return np.concatenate(hs), np.concatenate(rs)
 
 
+def term_gradients(variant, cfg, train) -> dict:
+    """{kernel: {term: ||d term / d kernel||}} at the parameters `cfg` starts from, on the first
+    chunk of its training stream, each term unweighted (the frame BCE is a mean over pixels)."""
+    import jax
+    import jax.numpy as jnp
+
+    from cdrl.data.stream import ChunkStream
+    from cdrl.training.step import chunk_loss, init_state
+
+    hp = cfg.hparams(variant)
+    state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, hp)
+    chunk = ChunkStream(train, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size,
+                        action_dim=cfg.arch.action_dim, seed=cfg.seed).next_chunk()
+    norms = {}
+    for term in hp.loss_weights:
+        only = hp.replace(loss_weights={k: jnp.float32(k == term) for k in hp.loss_weights})
+        grads = jax.jit(jax.grad(lambda p: chunk_loss(variant, p, state.carry, only, chunk)[0]))(state.params)
+        for path, g in jax.tree_util.tree_flatten_with_path(grads)[0]:
+            if g.ndim >= 2:
+                name = "/".join(str(getattr(k, "key", k)) for k in path)
+                norms.setdefault(name, {})[term] = float(jnp.linalg.norm(g))
+    return norms
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", help="a controller variant's run on the built-in game's data")
@@ -109,6 +136,7 @@ def main(argv=None) -> int:
     (h_tr, _), (h_te, r_te) = model_outputs(variant, params, train), model_outputs(variant, params, test)
     result["auc_features"] = ridge_auc(h_tr, y_tr, h_te, y_te)
     result["auc_reward_head"] = auc(r_te, y_te)
+    result["gradient_norms_at_init"] = term_gradients(variant, cfg, train)
     emit(result, args.out)
     return 0
 

@@ -33,24 +33,15 @@ from cdrl.models.base import StepInput, Variant
 def open_loop(variant: Variant, params, frames: jax.Array, actions: jax.Array, horizon: int) -> jax.Array:
     """Logits `[C + horizon - 1, B, H, W]` of the frames after each step: teacher-forced on the
     C context `frames` `[C, B, H, W]`, then each step fed with the sigmoid of the model's own
-    previous prediction; `actions` `[C + horizon - 1, B, A]` are the actions of those steps."""
+    previous prediction (`Variant.unroll_fed`); `actions` `[C + horizon - 1, B, A]` are the
+    actions of those steps."""
     context, batch = frames.shape[:2]
-
-    def step(carry, obs, action, first):
-        carry, out = variant.step(params, carry, StepInput(obs, action, jnp.full((batch,), first)))
-        return carry, out["logits"]
-
-    first = jnp.arange(context) == 0
-    carry, logits = jax.lax.scan(lambda c, x: step(c, *x), variant.init_carry(batch),
-                                 (frames, actions[:context], first))
-
-    def dreamed(state, action):
-        carry, prev = state
-        carry, out = step(carry, jax.nn.sigmoid(prev), action, False)
-        return (carry, out), out
-
-    _, free = jax.lax.scan(dreamed, (carry, logits[-1]), actions[context: context + horizon - 1])
-    return jnp.concatenate([logits, free], axis=0)
+    steps = context + horizon - 1
+    obs = jnp.concatenate([frames, jnp.zeros((horizon - 1,) + frames.shape[1:], frames.dtype)])
+    t = jnp.arange(steps)[:, None]
+    xs = StepInput(obs=obs, action=actions[:steps], is_first=jnp.broadcast_to(t == 0, (steps, batch)))
+    _, outs = variant.unroll_fed(params, variant.init_carry(batch), xs, jnp.broadcast_to(t < context, (steps, batch)))
+    return outs["logits"]
 
 
 @functools.partial(jax.jit, static_argnums=(0, 4))

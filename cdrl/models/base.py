@@ -129,6 +129,21 @@ class Variant:
     def unroll(self, params: dict, carry: Carry, xs: StepInput) -> tuple[Carry, Outputs]:
         return jax.lax.scan(lambda c, x: self.step(params, c, x), carry, xs)
 
+    def unroll_fed(self, params: dict, carry: Carry, xs: StepInput, observed: jax.Array) -> tuple[Carry, Outputs]:
+        """`unroll` where step t sees the real frame `xs.obs[t]` only where `observed` `[T, B]`
+        is true, and elsewhere the sigmoid of its own previous prediction, which keeps its
+        gradient (back-propagation through the model's own predictions, as Oh et al. 2015
+        train for many steps). The actions are always `xs.action`. Step 0 must be observed."""
+        def body(state, x):
+            carry, prev = state
+            x, seen = x
+            obs = jnp.where(seen[:, None, None], x.obs, jax.nn.sigmoid(prev))
+            carry, out = self.step(params, carry, x.replace(obs=obs))
+            return (carry, out["logits"]), out
+
+        (carry, _), outs = jax.lax.scan(body, (carry, jnp.zeros_like(xs.obs[0])), (xs, observed))
+        return carry, outs
+
     # ---- losses
     def stage_loss_weights(self) -> tuple[dict[str, float], ...]:
         """The loss weights of each training stage, for variants with `stages`."""

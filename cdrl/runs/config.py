@@ -145,6 +145,9 @@ class RunConfig:
     entropy_coef: float = _opt(0.01, "ppo: weight of the entropy bonus")
     ppo_epochs: int = _opt(4, "ppo: passes over each rollout")
     ppo_minibatches: int = _opt(4, "ppo: minibatches per pass (batch x unroll must divide by it)")
+    multistep: str = _opt("1", "offline runs: multi-step training: K feeds the model its own prediction between "
+                               "real frames every K steps of a chunk (1: teacher forcing); 'K1,K2,...' a "
+                               "curriculum over equal parts of --steps (Oh et al. 2015: 1,3,5)")
 
     def __post_init__(self):
         if self.recipe not in RECIPES:
@@ -163,6 +166,10 @@ class RunConfig:
         # must start jax.distributed before anything touches a JAX backend.
         from envs.slither import LEVELS
 
+        curriculum = self.feed_curriculum  # refuses a malformed --multistep
+        if self.kind != "offline" and curriculum != (1,):
+            raise ValueError(f"multistep {self.multistep!r} is for offline runs (teacher-forced on recorded "
+                             f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
                    "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "controller": CONTROLLER_CHOICES}
         for name, allowed in choices.items():
@@ -205,11 +212,26 @@ class RunConfig:
                                  weight_decay=self.weight_decay, grad_clip=self.grad_clip, warmup=self.lr_warmup,
                                  decay_steps=self.lr_decay_steps if self.lr_schedule == "cosine" else 0)
 
-    def hparams(self, variant: Variant) -> HParams:
+    @property
+    def feed_curriculum(self) -> tuple[int, ...]:
+        """`multistep` as its K of each equal part of the run's steps."""
+        try:
+            ks = tuple(int(k) for k in self.multistep.split(","))
+        except ValueError:
+            ks = ()
+        if not ks or min(ks) < 1:
+            raise ValueError(f"multistep must be K or K1,K2,... with every K an integer >= 1 (1: teacher forcing), "
+                             f"got {self.multistep!r}")
+        return ks
+
+    def hparams(self, variant: Variant, fed: bool | None = None) -> HParams:
         """The traced hyper-parameters of offline training (a reward head's term weighted by
-        `reward_weight`)."""
+        `reward_weight`; the curriculum's first K; `fed`: unroll with fed-back predictions,
+        by default where the curriculum has a K above 1)."""
+        ks = self.feed_curriculum
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
-                              loss_weights={"reward_mse": self.reward_weight} if variant.predicts_reward else None)
+                              loss_weights={"reward_mse": self.reward_weight} if variant.predicts_reward else None,
+                              feed_every=ks[0], fed=max(ks) > 1 if fed is None else fed)
 
 
 @dataclasses.dataclass(frozen=True)

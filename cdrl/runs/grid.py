@@ -108,7 +108,12 @@ def sharded_sweep_step(variant: Variant, mesh):
 def init_sweep(variant: Variant, cfgs: Sequence[RunConfig]) -> tuple[TrainState, HParams]:
     """Stacked initial states and hyper-parameters, each configuration exactly as
     `cdrl train` would start it (parameters from `PRNGKey(seed)`)."""
-    hps = stack([c.hparams(variant) for c in cfgs])
+    curricula = [c for c in cfgs if len(c.feed_curriculum) > 1]
+    if curricula:
+        raise ValueError(f"a sweep trains each configuration at one multi-step K; multistep "
+                         f"{curricula[0].multistep!r} is a curriculum: train it with cdrl train")
+    fed = any(c.feed_curriculum[0] > 1 for c in cfgs)  # one program for the grid
+    hps = stack([c.hparams(variant, fed=fed) for c in cfgs])
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
     params = init_params(variant, keys)
     carry = variant.init_carry(cfgs[0].batch)

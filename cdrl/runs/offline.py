@@ -43,7 +43,8 @@ class OfflineJob(TrainJob):
 
     def __init__(self, cfg: RunConfig, variant, stream: ChunkStream, test_eps, state, ckpts: Checkpoints,
                  parallel: DataParallel | None, writes: bool):
-        super().__init__(variant, stream, cfg.hparams(variant), cfg.steps, ratio_names(state))
+        super().__init__(variant, stream, cfg.hparams(variant), cfg.steps, ratio_names(state),
+                         curriculum=cfg.feed_curriculum)
         self.cfg, self.test_eps, self.ckpts, self.parallel, self.writes = cfg, test_eps, ckpts, parallel, writes
         self.key = jax.random.PRNGKey(cfg.seed)
         self.threshold = cfg.diverge_threshold

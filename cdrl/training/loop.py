@@ -275,6 +275,14 @@ def stage_schedule(variant: Variant, steps: int) -> list[tuple[int, dict[str, fl
     return [(i * steps // len(weights), w) for i, w in enumerate(weights)]
 
 
+def feed_schedule(curriculum: Sequence[int], steps: int) -> list[tuple[int, int]]:
+    """(first step, K) of each part of a multi-step curriculum (`HParams.feed_every`): equal
+    parts of `steps`; empty for teacher forcing throughout."""
+    if tuple(curriculum) == (1,):
+        return []
+    return [(i * steps // len(curriculum), int(k)) for i, k in enumerate(curriculum)]
+
+
 def enter_stage(variant: Variant, schedule, step: int, state: TrainState, hp: HParams, resumed: bool = False):
     """(state, hp) for `step`: at a stage's first step its loss weights, and fresh momentum
     after the first stage. `resumed`: a run (re)starting at `step` also takes the weights of
@@ -298,9 +306,11 @@ class TrainJob(Job):
     its training stages: the in-memory job of `fit`, and the core of `cdrl train`'s offline
     run (which adds evaluation, checkpoints and device layouts)."""
 
-    def __init__(self, variant: Variant, stream, hp: HParams, steps: int, names: list[str]):
+    def __init__(self, variant: Variant, stream, hp: HParams, steps: int, names: list[str],
+                 curriculum: Sequence[int] = (1,)):
         self.variant, self.stream, self.hp = variant, stream, hp
         self.schedule = stage_schedule(variant, steps)
+        self.feeds = feed_schedule(curriculum, steps)
         self.desc = f"train {variant.name}"
         self.frames_per_step = stream.batch * stream.unroll
         self.ratio_names = names
@@ -308,6 +318,9 @@ class TrainJob(Job):
 
     def stage(self, step: int, state, resumed: bool):
         staged, self.hp = enter_stage(self.variant, self.schedule, step, state, self.hp, resumed=resumed)
+        for first, k in self.feeds:
+            if step == first or (resumed and first <= step):
+                self.hp = self.hp.replace(feed_every=jnp.asarray(k, jnp.int32))
         return staged
 
     def inputs(self, chunk):
@@ -322,10 +335,12 @@ class TrainJob(Job):
 
 
 def fit(variant: Variant, stream, steps: int, hp: HParams, key: jax.Array | None = None,
-        state: TrainState | None = None, callback=None) -> tuple[TrainState, list[dict]]:
+        state: TrainState | None = None, callback=None,
+        curriculum: Sequence[int] = (1,)) -> tuple[TrainState, list[dict]]:
     """Train in memory for `steps` chunks of `stream` through the host loop every run uses;
-    returns (state, the steps' records). `callback(record)` sees each record as it comes.
-    Raises `DivergenceError` (with the last good state) on divergence."""
+    returns (state, the steps' records). `callback(record)` sees each record as it comes;
+    `curriculum`: the multi-step K of each equal part of the steps (`feed_schedule`; `hp`
+    must then be `fed`). Raises `DivergenceError` (with the last good state) on divergence."""
     if state is None:
         if key is None:
             raise ValueError("fit needs either a PRNG key or an initial state")
@@ -338,6 +353,6 @@ def fit(variant: Variant, stream, steps: int, hp: HParams, key: jax.Array | None
                 callback(record)
 
     sink = Recorder()
-    job = TrainJob(variant, stream, hp, steps, ratio_names(state))
+    job = TrainJob(variant, stream, hp, steps, ratio_names(state), curriculum=curriculum)
     result = host_loop(job, state, Plan(steps=steps, final_eval=False), [sink])
     return result.state, sink.steps

@@ -115,11 +115,20 @@ def init_opt_state(opt: OptHParams, params):
 @flax.struct.dataclass
 class HParams:
     """Traced hyper-parameters of offline training: one compiled program serves any values
-    (and a `vmap` sweep over a stack of them)."""
+    (and a `vmap` sweep over a stack of them).
+
+    `feed_every` K: multi-step training, where a chunk's step t sees the real frame where
+    t % K == 0 (and at episode starts) and the model's own previous prediction elsewhere (K 1:
+    teacher forcing). It is traced, so a curriculum changes it without compiling again; the
+    static `fed` says whether the program unrolls with fed-back predictions at all (the
+    one-step unroll of the open-loop variants encodes a whole chunk at once, which a fed-back
+    one cannot)."""
 
     opt: OptHParams
     loss_weights: dict[str, jax.Array]
     diverge_threshold: jax.Array
+    feed_every: jax.Array
+    fed: bool = flax.struct.field(pytree_node=False, default=False)
 
     @classmethod
     def create(
@@ -130,9 +139,11 @@ class HParams:
         loss_weights: dict[str, float] | None = None,
         diverge_threshold: float = 1e3,
         opt: OptHParams | None = None,
+        feed_every: int = 1,
+        fed: bool | None = None,
     ) -> "HParams":
         """`opt`: the optimiser's numbers (default: SGD with `lr` and `momentum`, which it
-        replaces)."""
+        replaces). `fed` defaults to `feed_every > 1`; a curriculum that starts at K 1 sets it."""
         weights = dict(variant.default_loss_weights())
         for key, value in (loss_weights or {}).items():
             if key not in weights:
@@ -143,7 +154,10 @@ class HParams:
             weights[key] = value
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         opt = opt if opt is not None else OptHParams.create(lr=lr, momentum=momentum)
-        return cls(opt, {k: f32(v) for k, v in weights.items()}, f32(diverge_threshold))
+        if feed_every < 1:
+            raise ValueError(f"feed_every must be >= 1 (1: teacher forcing), got {feed_every}")
+        return cls(opt, {k: f32(v) for k, v in weights.items()}, f32(diverge_threshold),
+                   jnp.asarray(feed_every, jnp.int32), fed=feed_every > 1 if fed is None else fed)
 
     @property
     def lr(self) -> jax.Array:

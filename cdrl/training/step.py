@@ -71,13 +71,18 @@ def step_inputs(chunk: Chunk) -> StepInput:
 
 
 def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
-    """Weighted loss of one chunk from `carry`, which is cut from the graph (TBPTT).
+    """Weighted loss of one chunk from `carry`, which is cut from the graph (TBPTT); with
+    `hp.fed`, the model is fed its own predictions between real frames (`HParams.feed_every`).
 
     Returns `(loss, (final_carry, terms, outputs))`.
     """
     carry = jax.lax.stop_gradient(carry)
     xs = step_inputs(chunk)
-    carry, outs = variant.unroll(params, carry, xs)
+    if hp.fed:  # multi-step training: real frames every `feed_every` steps, own predictions between
+        t = jnp.arange(xs.is_first.shape[0])[:, None]
+        carry, outs = variant.unroll_fed(params, carry, xs, (t % hp.feed_every == 0) | xs.is_first)
+    else:
+        carry, outs = variant.unroll(params, carry, xs)
     terms = variant.loss_terms(params, xs, outs, as_float(chunk.next_obs), chunk.reward)
     missing = set(terms) ^ set(hp.loss_weights)
     if missing:
