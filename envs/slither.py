@@ -131,6 +131,19 @@ LEVELS: dict[str, dict[str, float]] = {
     "sparse": {"pellet_init_fill": 0.1, "pellet_regrow_prob": 0.05},
     # flat and sparse: mostly the snakes
     "clean": {"background_contrast": 0.0, "pellet_init_fill": 0.1, "pellet_regrow_prob": 0.05},
+    # the thesis-like game with its pellets drawn larger (see LEVEL_GAMES)
+    "visible": {},
+}
+
+# Static drawing options of the levels that have any (`Slither` arguments, beside the level's
+# `SlitherParams` overrides above).
+LEVEL_GAMES: dict[str, dict[str, float]] = {
+    # pellets drawn as large as a snake's segment (radius 6 raw pixels, not 2): at the small
+    # preset's 64 x 64 a radius-2 pellet is a sub-pixel dot that brightens one pixel by about a
+    # fifth of the range, as faint as the background's texture; at radius 6 it is a disc of
+    # about 2.5 pixels, 0.8 above the background. The physics are the thesis level's (pellets
+    # are placed at least their radius + 1 from their cell's edges).
+    "visible": {"pellet_radius": 6.0},
 }
 
 
@@ -140,6 +153,13 @@ def level_params(level: str, params: "SlitherParams | None" = None) -> "SlitherP
         raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)}")
     params = SlitherParams() if params is None else params
     return canonical_params(params.replace(**LEVELS[level]))
+
+
+def level_game(level: str) -> "Slither":
+    """The game of level ``level``: :class:`Slither` with the level's static drawing options."""
+    if level not in LEVELS:
+        raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)}")
+    return Slither(**LEVEL_GAMES.get(level, {}))
 
 
 @struct.dataclass

@@ -42,7 +42,7 @@ def test_contrast_blends_the_background_toward_its_mean(background_only):
 def test_levels_are_named_overrides():
     assert LEVELS["thesis"] == {}
     assert [RunConfig(level=name).level for name in LEVELS] == list(LEVELS)  # one list of levels: the game's
-    with pytest.raises(ValueError, match="level must be one of thesis, flat, sparse, clean; got 'hard'"):
+    with pytest.raises(ValueError, match="level must be one of thesis, flat, sparse, clean, visible; got 'hard'"):
         RunConfig(level="hard")
     clean = level_params("clean")
     assert float(clean.background_contrast) == 0.0 and float(clean.pellet_init_fill) < 0.2
@@ -69,3 +69,31 @@ def test_a_runs_level_reaches_its_data(tmp_path):
     assert len(dirs) == 2 and dirs[1].name.endswith("-flat"), dirs
     manifest = json.loads((dirs[1] / "manifest.json").read_text())
     assert manifest["config"]["env_params"]["background_contrast"] == 0.0
+
+
+def test_the_visible_level_draws_pellets_that_survive_the_small_preset(background_only):
+    """Level `visible` is the thesis level's physics with pellets drawn at a snake segment's
+    radius: one pellet in an empty view brightens the 64 x 64 frame by most of its range, the
+    thesis level's by about a fifth."""
+    from cdrl.data.frames import resize_obs
+    from cdrl.runs.sources import run_game
+    from envs.slither import level_game
+
+    _, state = background_only
+    game, params = run_game(RunConfig(level="visible"))
+    assert game.spec.pellet_radius == 6.0 and level_game("thesis").spec.pellet_radius == 2.0
+    assert params == game_params(RunConfig(level="thesis")).replace(max_steps=params.max_steps)
+    cell = game.pellet_cell_size
+    head_cell = (int(state.y[0, 0] // cell), int(state.x[0, 0] // cell))
+    iy, ix = head_cell[0] - 2, head_cell[1] - 2  # a cell 100 raw pixels up and left of the head
+    one = state.replace(pellet_value=state.pellet_value.at[iy, ix].set(0.5),
+                        pellet_dx=state.pellet_dx.at[iy, ix].set(cell / 2),
+                        pellet_dy=state.pellet_dy.at[iy, ix].set(cell / 2))
+    contrast = {}
+    for level in ("thesis", "visible"):
+        g = level_game(level)
+        with_pellet = np.asarray(resize_obs(g.get_obs(one, params), 64))
+        empty = np.asarray(resize_obs(g.get_obs(state, params), 64))
+        corner = (slice(0, 24), slice(0, 24))  # the pellet's quarter, away from the player's body
+        contrast[level] = float((with_pellet - empty)[corner].max())
+    assert contrast["visible"] > 0.6 and contrast["thesis"] < 0.3, contrast

@@ -59,8 +59,9 @@ CONFIGS: dict[str, dict] = {
 class Budget:
     """How much every run of the experiment gets: the preset, the game frames of training,
     held-out games per evaluation and their step cap, evaluations per run, the model-based
-    runs' updates before their controller learns, B x T of model-based runs and of PPO, and
-    the steps of a world model's offline pre-training (B 4 x T 8, the `fast` recipe's)."""
+    runs' updates before their controller learns, B x T of model-based runs and of PPO, the
+    steps of a world model's offline pre-training (B 4 x T 8, the `fast` recipe's), and the
+    game's level (`envs.slither.LEVELS`)."""
 
     preset: str
     frames: int
@@ -71,6 +72,7 @@ class Budget:
     model_shape: tuple[int, int] = (8, 16)
     ppo_shape: tuple[int, int] = (16, 32)
     pretrain_steps: int = 8000
+    level: str = "thesis"
 
 
 BUDGETS = {
@@ -86,7 +88,7 @@ def pretrain_config(name: str, budget: Budget, seed: int) -> RunConfig | None:
         return None
     return RunConfig(preset=budget.preset, steps=budget.pretrain_steps, seed=seed,
                      eval_every=max(1, budget.pretrain_steps // budget.evals), checkpoint_every=budget.pretrain_steps,
-                     eval_episodes=6, tensorboard=False, **CONFIGS[name]["pretrain"])
+                     eval_episodes=6, tensorboard=False, level=budget.level, **CONFIGS[name]["pretrain"])
 
 
 def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = None) -> RunConfig:
@@ -100,7 +102,8 @@ def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = Non
     every = max(1, steps // budget.evals)
     return RunConfig(preset=budget.preset, batch=batch, unroll=unroll, steps=steps, seed=seed, eval_every=every,
                      checkpoint_every=every, eval_episodes=budget.eval_episodes, episode_steps=budget.episode_steps,
-                     warmup_steps=budget.warmup_steps, tensorboard=False, init_from=str(init_from or ""), **options)
+                     warmup_steps=budget.warmup_steps, tensorboard=False, init_from=str(init_from or ""),
+                     level=budget.level, **options)
 
 
 def train_or_read(cfg: RunConfig, run_dir: Path) -> float:
@@ -170,7 +173,7 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
                    on_config=None) -> dict:
     """Every configuration of `names` on every seed, under `work`: the results (see the module
     docstring). `on_config(results)` sees the results after each configuration."""
-    results = {"budget": {**dataclasses.asdict(budget), "seeds": list(seeds), "level": "thesis"}, "configs": {},
+    results = {"budget": {**dataclasses.asdict(budget), "seeds": list(seeds)}, "configs": {},
                "references": None}
     for name in names:
         per_seed = {}

@@ -56,10 +56,12 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
         test = synthetic.synthetic_episodes(n_test, cfg.episode_steps, size, cfg.seed + 10_000, pushed=uses_action)
         return train, test
     if cfg.data == "game":
+        from envs.slither import LEVEL_GAMES
+
         policy = "uniform" if uses_action else "behaviour"
         path = cache_root / _cache_name(cfg, policy, cfg.episodes)
         collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
-                env_params=game_params(cfg))
+                env_params=game_params(cfg), game_kwargs=LEVEL_GAMES.get(cfg.level, {}))
     else:
         path = Path(cfg.data)
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
@@ -159,9 +161,9 @@ def with_obs_norm(cfg: RunConfig, cache_root: Path) -> RunConfig:
 def run_game(cfg: RunConfig):
     """The game a controller run plays: the run's level and `cfg.env`, episodes capped at
     `cfg.episode_steps` unless `cfg.env` sets `max_steps`."""
-    from envs.slither import Slither
+    from envs.slither import level_game
 
     params = game_params(cfg)
     if "max_steps" not in cfg.env:
         params = params.replace(max_steps=np.asarray(cfg.episode_steps, np.int32))
-    return Slither(), params
+    return level_game(cfg.level), params
