@@ -140,7 +140,7 @@ LEVELS: dict[str, dict[str, float]] = {
 LEVEL_GAMES: dict[str, dict[str, float]] = {
     # pellets drawn as large as a snake's segment (radius 6 raw pixels, not 2): at the small
     # preset's 64 x 64 a radius-2 pellet is a sub-pixel dot that brightens one pixel by about a
-    # fifth of the range, as faint as the background's texture; at radius 6 it is a disc of
+    # fifth of the range; at radius 6 it is a disc of
     # about 2.5 pixels, 0.8 above the background. The physics are the thesis level's (pellets
     # are placed at least their radius + 1 from their cell's edges).
     "visible": {"pellet_radius": 6.0},
