@@ -16,6 +16,7 @@ its data cursor).
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import shutil
 import sys
@@ -63,18 +64,28 @@ def _closed_loop_callbacks_dropped():
     of its own (`asyncio_utils.run_sync`) and closes it as soon as the first array read fails,
     while tensorstore's reads of the other arrays are still pending; each of them completes into
     the closed loop and its callback's `RuntimeError: Event loop is closed` reaches
-    `sys.unraisablehook`, a traceback each. Only those are dropped, and only here; a checkpoint
-    with checksums is checked before orbax reads it, so this is for those written without."""
+    `sys.unraisablehook`, a traceback each; the reads that failed as the first one did are
+    futures nobody awaits, and asyncio logs each ('Future exception was never retrieved') when
+    it is collected. Only those are dropped, and only here (the futures are collected before it
+    ends); a checkpoint with checksums is checked before orbax reads it, so this is for those
+    written without."""
     previous = sys.unraisablehook
 
     def hook(unraisable):
         if not (isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"):
             previous(unraisable)
 
+    def unawaited(record: logging.LogRecord) -> bool:
+        return record.getMessage() not in ("Future exception was never retrieved", "Task exception was never retrieved")
+
+    asyncio_log = logging.getLogger("asyncio")
     sys.unraisablehook = hook
+    asyncio_log.addFilter(unawaited)
     try:
         yield
     finally:
+        gc.collect()
+        asyncio_log.removeFilter(unawaited)
         sys.unraisablehook = previous
 
 
