@@ -4,7 +4,8 @@ Two renderers share one picture of the world:
 
 * :func:`render_raw` draws the full RGB frame the thesis's agent saw: 500 x 300
   (width x height, array shape ``[300, 500, 3]``, ``uint8``), camera centred on the
-  player's head.
+  player's head (with ``RenderSpec.camera == "heading"`` the view also turns with the
+  player, its heading up the screen).
 * :func:`render_obs` draws the pre-processed observation directly: the central
   300 x 300 crop at half resolution, one channel = max over R, G, B
   (``[150, 150]`` float32 in [0, 1]).  It is the fast path used for data collection.
@@ -74,6 +75,7 @@ BACKGROUND_AMPLITUDE = (0.05, 0.07, 0.12)
 BACKGROUND_PERIOD = 40.0
 STRIPE_PERIOD = 4.0
 STRIPE_DEPTH = 0.3
+CAMERAS = ("north", "heading")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +91,9 @@ class RenderSpec:
         segments are taken in order (player head to tail, then opponent 1, ...), so
         when more are in view the tail ends of the highest-numbered opponents are
         left out of the observation (``render_raw`` draws them all).
+      camera: ``"north"``: the world's axes are the screen's (the thesis's game);
+        ``"heading"``: the view turns with the player, its heading pointing up the
+        screen, so "a pellet left of the centre" means "turn left".
     """
 
     arena_size: float
@@ -96,6 +101,11 @@ class RenderSpec:
     segment_radius: float = 6.0
     pellet_radius: float = 2.0
     max_drawn_segments: int = 64
+    camera: str = "north"
+
+    def __post_init__(self):
+        if self.camera not in CAMERAS:
+            raise ValueError(f"unknown camera {self.camera!r}; choose one of {', '.join(CAMERAS)}")
 
     @property
     def grid(self) -> int:
@@ -189,6 +199,73 @@ def _background(cam_x, cam_y, offsets_x, offsets_y, spec: RenderSpec, b0: float,
     return left @ right
 
 
+def _background_turned(cam_x, cam_y, axes, offsets_x, offsets_y, spec: RenderSpec, b0: float, b1,
+                       half_res: bool):
+    """:func:`_background` for a view whose axes are turned: the pixel at view offsets
+    (qx, qy) shows the world point ``camera + qx * axes[0] + qy * axes[1]`` (``axes``: two
+    traced unit vectors, the screen's right and down in world coordinates).
+
+    Each of the three plane waves ``cos(k . p)`` is ``cos(phi + a qx + b qy)`` in view
+    coordinates, with ``a = k . axes[0]``, ``b = k . axes[1]``: a rank-2 outer product by the
+    angle-addition formula, so the background is one rank-6 matrix product. With
+    ``half_res`` each wave is damped by the factor a 2 x 2 block mean of full-resolution
+    samples applies to it, ``cos(a / 2) cos(b / 2)``.
+    """
+    n1, n2x, n2y = spec.wave_numbers
+    w = 2.0 * math.pi / spec.arena_size
+    waves = ((w * n1, 0.0, 1.0), (w * n2x, w * n2y, 1.0), (w * n2x, -w * n2y, 1.0))
+    cam_x = wrap_position(cam_x, spec.arena_size)
+    cam_y = wrap_position(cam_y, spec.arena_size)
+    (rx, ry), (dx, dy) = axes
+    left, right = [], []
+    for kx, ky, weight in waves:
+        phi = kx * cam_x + ky * cam_y
+        a = kx * rx + ky * ry
+        b = kx * dx + ky * dy
+        gain = b1 * weight * (jnp.cos(a / 2) * jnp.cos(b / 2) if half_res else 1.0)
+        cols = phi + a * offsets_x
+        rows = b * offsets_y
+        left += [jnp.cos(rows), -jnp.sin(rows)]
+        right += [gain * jnp.cos(cols), gain * jnp.sin(cols)]
+    left = jnp.stack([jnp.ones(len(offsets_y), jnp.float32)] + left, axis=1)
+    right = jnp.stack([jnp.full(len(offsets_x), b0, jnp.float32)] + right, axis=0)
+    return left @ right
+
+
+def _draw_background(spec: RenderSpec, cam_x, cam_y, axes, offsets_x, offsets_y, b0, b1, half_res: bool):
+    """One channel of the background for the spec's camera (see :func:`_background`)."""
+    if spec.camera == "north":
+        return _background(cam_x, cam_y, offsets_x, offsets_y, spec, b0, b1, half_res)
+    return _background_turned(cam_x, cam_y, axes, offsets_x, offsets_y, spec, b0, b1, half_res)
+
+
+def view_axes(spec: RenderSpec, state):
+    """The screen's right and down as world vectors ``((rx, ry), (dx, dy))``: the world's own
+    axes for the ``north`` camera; for ``heading``, down is the player's heading reversed and
+    right is the heading turned clockwise (a turn to the right)."""
+    if spec.camera == "north":
+        return (1.0, 0.0), (0.0, 1.0)
+    c, s = jnp.cos(state.heading[0]), jnp.sin(state.heading[0])
+    return (-s, c), (-c, -s)
+
+
+def view_offsets(spec: RenderSpec, axes, dx, dy):
+    """World deltas (dx, dy) from the camera as view offsets (right, down) in raw pixels."""
+    if spec.camera == "north":
+        return dx, dy
+    (rx, ry), (ux, uy) = axes
+    return dx * rx + dy * ry, dx * ux + dy * uy
+
+
+def _window_span(spec: RenderSpec, width: float, height: float) -> tuple[float, float]:
+    """The world span (x, y) a width x height view can show: the view itself, or for a
+    turning camera the square around its circumscribed circle."""
+    if spec.camera == "north":
+        return width, height
+    diameter = math.hypot(width, height)
+    return diameter, diameter
+
+
 def segment_shading(num_segments: int, stripe_phase: jnp.ndarray) -> jnp.ndarray:
     """Brightness factor [S, M] of each segment: a triangle-wave stripe pattern of
     ``STRIPE_PERIOD`` segments that travels with the body."""
@@ -275,17 +352,18 @@ def render_raw(spec: RenderSpec, state, active, contrast=1.0):
     off_x = np.arange(w, dtype=np.float32) + 0.5 - w / 2
     off_y = np.arange(h, dtype=np.float32) + 0.5 - h / 2
     b0, b1 = _background_coefficients(spec)
+    axes = view_axes(spec, state)
     channels = [
-        _background(cam_x, cam_y, off_x, off_y, spec, b0[c], b1[c] * contrast, half_res=False).reshape(-1)
+        _draw_background(spec, cam_x, cam_y, axes, off_x, off_y, b0[c], b1[c] * contrast, half_res=False).reshape(-1)
         for c in range(3)
     ]
 
     def to_px(wx, wy):
-        row = wrap_delta(wy - cam_y, spec.arena_size) + (h / 2 - 0.5)
-        col = wrap_delta(wx - cam_x, spec.arena_size) + (w / 2 - 0.5)
-        return row, col
+        right, down = view_offsets(spec, axes, wrap_delta(wx - cam_x, spec.arena_size),
+                                    wrap_delta(wy - cam_y, spec.arena_size))
+        return down + (h / 2 - 0.5), right + (w / 2 - 0.5)
 
-    px_, py_, pval, pcol = _pellet_window(spec, state, cam_x, cam_y, float(w), float(h))
+    px_, py_, pval, pcol = _pellet_window(spec, state, cam_x, cam_y, *_window_span(spec, float(w), float(h)))
     p_row, p_col = to_px(px_, py_)
     p_colours = jnp.asarray(np.asarray(PELLET_COLOURS, np.float32).T)[:, pcol]
     p_colours = jnp.where(pval[None] > 0, p_colours, 0.0)
@@ -327,17 +405,18 @@ def render_obs(spec: RenderSpec, state, active, contrast=1.0):
     grid = 2.0 * np.arange(n, dtype=np.float32) - (half_crop - 1)
     b0, b1 = _background_coefficients(spec)
     bright = int(np.argmax(b0 + 3.0 * b1))
-    image = _background(
-        cam_x, cam_y, grid, grid, spec, b0[bright], b1[bright] * contrast, half_res=True
+    axes = view_axes(spec, state)
+    image = _draw_background(
+        spec, cam_x, cam_y, axes, grid, grid, b0[bright], b1[bright] * contrast, half_res=True
     ).reshape(-1)
 
     def to_px(wx, wy):
-        row = (wrap_delta(wy - cam_y, spec.arena_size) + (half_crop - 1)) * 0.5
-        col = (wrap_delta(wx - cam_x, spec.arena_size) + (half_crop - 1)) * 0.5
-        return row, col
+        right, down = view_offsets(spec, axes, wrap_delta(wx - cam_x, spec.arena_size),
+                                    wrap_delta(wy - cam_y, spec.arena_size))
+        return (down + (half_crop - 1)) * 0.5, (right + (half_crop - 1)) * 0.5
 
     span = float(CROP_SIZE)
-    px_, py_, pval, pcol = _pellet_window(spec, state, cam_x, cam_y, span, span)
+    px_, py_, pval, pcol = _pellet_window(spec, state, cam_x, cam_y, *_window_span(spec, span, span))
     pb = jnp.asarray(_brightness(PELLET_COLOURS))[pcol]
     pb = jnp.where(pval > 0, pb, 0.0)
     image = _stamp(image, n, n, *to_px(px_, py_), pb, spec.pellet_radius / 2)

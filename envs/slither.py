@@ -133,17 +133,25 @@ LEVELS: dict[str, dict[str, float]] = {
     "clean": {"background_contrast": 0.0, "pellet_init_fill": 0.1, "pellet_regrow_prob": 0.05},
     # the thesis-like game with its pellets drawn larger (see LEVEL_GAMES)
     "visible": {},
+    # the thesis-like game seen by a camera that turns with the player (see LEVEL_GAMES)
+    "heading": {},
 }
 
 # Static drawing options of the levels that have any (`Slither` arguments, beside the level's
 # `SlitherParams` overrides above).
-LEVEL_GAMES: dict[str, dict[str, float]] = {
+LEVEL_GAMES: dict[str, dict[str, float | str]] = {
     # pellets drawn as large as a snake's segment (radius 6 raw pixels, not 2): at the small
     # preset's 64 x 64 a radius-2 pellet is a sub-pixel dot that brightens one pixel by about a
     # fifth of the range; at radius 6 it is a disc of
     # about 2.5 pixels, 0.8 above the background. The physics are the thesis level's (pellets
     # are placed at least their radius + 1 from their cell's edges).
     "visible": {"pellet_radius": 6.0},
+    # the view turns with the player, its heading up the screen: the same world, pellets and
+    # physics as the thesis level, but "the pellet ahead and to the left" is always the same
+    # place in the frame, wherever the snake heads. Behaviour cloning of the privileged policy
+    # from 51 200 frames of 64 x 64 plays +8.4 on held-out games here and +3.1 with the
+    # north-up camera (docs/controller.md).
+    "heading": {"camera": "heading"},
 }
 
 
@@ -273,6 +281,8 @@ class Slither:
       segment_radius, pellet_radius: drawing radii in raw pixels.
       max_drawn_segments: snake segments the fast observation draws at most (see
         :class:`envs.render.RenderSpec`).
+      camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game) or
+        ``"heading"`` (the view turns with the player, its heading up the screen).
     """
 
     def __init__(
@@ -285,6 +295,7 @@ class Slither:
         segment_radius: float = 6.0,
         pellet_radius: float = 2.0,
         max_drawn_segments: int = 64,
+        camera: str = "north",
     ):
         grid = arena_size / pellet_cell_size
         if abs(grid - round(grid)) > 1e-6:
@@ -308,6 +319,7 @@ class Slither:
             segment_radius=float(segment_radius),
             pellet_radius=float(pellet_radius),
             max_drawn_segments=int(max_drawn_segments),
+            camera=str(camera),
         )
         self.grid = self.spec.grid
         self.pellet_margin = float(pellet_radius) + 1.0
@@ -328,7 +340,7 @@ class Slither:
     def __repr__(self) -> str:
         return (
             f"Slither(num_opponents={self.num_opponents}, max_segments={self.max_segments}, "
-            f"arena_size={self.arena_size}, pellet_cell_size={self.pellet_cell_size})"
+            f"arena_size={self.arena_size}, pellet_cell_size={self.pellet_cell_size}, camera={self.spec.camera!r})"
         )
 
     @property
@@ -581,7 +593,8 @@ class Slither:
     def in_view(self, state: SlitherState) -> jnp.ndarray:
         """[S] bool: some segment centre of snake s lies inside the observed crop."""
         half = _render.CROP_SIZE / 2
-        dx = wrap_delta(state.x - state.x[0, 0], self.arena_size)
-        dy = wrap_delta(state.y - state.y[0, 0], self.arena_size)
+        dx, dy = _render.view_offsets(self.spec, _render.view_axes(self.spec, state),
+                                      wrap_delta(state.x - state.x[0, 0], self.arena_size),
+                                      wrap_delta(state.y - state.y[0, 0], self.arena_size))
         inside = (jnp.abs(dx) < half) & (jnp.abs(dy) < half) & self.active(state)
         return jnp.any(inside, axis=-1)

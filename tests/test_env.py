@@ -310,6 +310,63 @@ def test_fast_observation_matches_preprocessed_raw_frame():
         assert diff.max() < 0.25
 
 
+def _turned_player(state, heading: float):
+    """The state with the player's body turned about its head so that it heads `heading`."""
+    hx, hy = state.x[0, 0], state.y[0, 0]
+    turn = heading - state.heading[0]
+    c, s = jnp.cos(turn), jnp.sin(turn)
+    dx, dy = wrap_delta(state.x[0] - hx, GAME.arena_size), wrap_delta(state.y[0] - hy, GAME.arena_size)
+    return state.replace(x=state.x.at[0].set((hx + c * dx - s * dy) % GAME.arena_size),
+                         y=state.y.at[0].set((hy + s * dx + c * dy) % GAME.arena_size),
+                         heading=state.heading.at[0].set(heading))
+
+
+@pytest.fixture(scope="module")
+def turning_state():
+    """A state after 30 steps of turning left (a curved body), an opponent beside the head."""
+    s = reset_state(jax.random.PRNGKey(5), PARAMS)
+    s = s.replace(x=s.x.at[1].set(s.x[0] + 40.0), y=s.y.at[1].set(s.y[0] - 70.0))
+    for t in range(30):
+        s, *_ = step_state(jax.random.PRNGKey(t), s, LEFT, PARAMS)
+    return s
+
+
+def test_the_heading_camera_is_the_north_camera_turned_with_the_player(turning_state):
+    """Heading up the screen (heading -pi/2) the two cameras see the same frame; heading east
+    (0), the heading camera's frame is the north camera's turned a quarter counter-clockwise:
+    what lies ahead (east) is up, what lies to the right (south) is right. Both draw the
+    background by other formulas (separable waves, rank-6 turned waves), and every disc."""
+    heading = Slither(camera="heading")
+    up = _turned_player(turning_state, -math.pi / 2)
+    np.testing.assert_allclose(np.asarray(heading.get_obs(up, PARAMS)), np.asarray(get_obs(up)), atol=2e-5)
+    east = _turned_player(turning_state, 0.0)
+    north_frame, heading_frame = np.asarray(get_obs(east)), np.asarray(heading.get_obs(east, PARAMS))
+    # view pixel (row i, column j) lies 2i - 149 behind and 2j - 149 right of the head: the
+    # north frame's pixel (row j, column 149 - i)
+    np.testing.assert_allclose(heading_frame, np.rot90(north_frame, k=1), atol=2e-5)
+    assert np.abs(heading_frame - north_frame).mean() > 0.01  # and they differ
+    # The body trails behind the head: below the centre of the heading camera's frame.
+    body = heading.get_obs(east.replace(pellet_value=jnp.zeros_like(east.pellet_value)), PARAMS.replace(
+        background_contrast=np.float32(0.0)))
+    body = np.asarray(body) > 0.5
+    rows = np.nonzero(body[60:90, 60:90])[0] + 60
+    assert rows.size and rows.min() >= 70 and rows.max() > 80
+
+
+def test_the_heading_cameras_fast_observation_matches_its_preprocessed_raw_frame(turning_state):
+    heading = Slither(camera="heading")
+    for angle in (0.3, 2.0, 4.4):
+        s = _turned_player(turning_state, angle)
+        diff = np.abs(np.asarray(heading.get_obs(s, PARAMS)) - preprocess(np.asarray(heading.render_raw(s, PARAMS))))
+        assert diff.mean() < 0.005 and (diff > 0.05).mean() < 0.02 and diff.max() < 0.25
+        assert bool(heading.in_view(s)[1])  # 80 raw pixels from the head, in view whichever way it heads
+
+
+def test_an_unknown_camera_is_refused():
+    with pytest.raises(ValueError, match="unknown camera 'south'; choose one of north, heading"):
+        Slither(camera="south")
+
+
 def test_preprocess_numbers_options_and_backends():
     frame = np.zeros((300, 500, 3), np.uint8)
     frame[0, 100, 0] = 255

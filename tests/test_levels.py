@@ -42,7 +42,7 @@ def test_contrast_blends_the_background_toward_its_mean(background_only):
 def test_levels_are_named_overrides():
     assert LEVELS["thesis"] == {}
     assert [RunConfig(level=name).level for name in LEVELS] == list(LEVELS)  # one list of levels: the game's
-    with pytest.raises(ValueError, match="level must be one of thesis, flat, sparse, clean, visible; got 'hard'"):
+    with pytest.raises(ValueError, match="level must be one of thesis, flat, sparse, clean, visible, heading; got 'hard'"):
         RunConfig(level="hard")
     clean = level_params("clean")
     assert float(clean.background_contrast) == 0.0 and float(clean.pellet_init_fill) < 0.2
@@ -97,3 +97,22 @@ def test_the_visible_level_draws_pellets_that_survive_the_small_preset(backgroun
         corner = (slice(0, 24), slice(0, 24))  # the pellet's quarter, away from the player's body
         contrast[level] = float((with_pellet - empty)[corner].max())
     assert contrast["visible"] > 0.6 and contrast["thesis"] < 0.3, contrast
+
+
+def test_the_heading_level_is_the_thesis_level_seen_by_a_turning_camera(tmp_path):
+    """Level `heading`: the thesis level's physics and drawing, its camera turning with the
+    player, in the runs that play it and in the data a run collects."""
+    from cdrl.runs.sources import run_game
+
+    game, params = run_game(RunConfig(level="heading"))
+    thesis, thesis_params = run_game(RunConfig(level="thesis"))
+    assert game.spec.camera == "heading" and thesis.spec.camera == "north"
+    assert dataclasses.replace(game.spec, camera="north") == thesis.spec and params == thesis_params
+    base = dict(preset="small", episodes=2, episode_steps=8, data="game", variant="main_action")
+    first = {}
+    for level in ("thesis", "heading"):
+        train, _ = load_episodes(RunConfig(level=level, **base), tmp_path)
+        first[level] = train[0]
+    # the same games and actions (the same seed), other frames
+    np.testing.assert_array_equal(first["thesis"].actions, first["heading"].actions)
+    assert np.abs(first["thesis"].frames.astype(int) - first["heading"].frames).mean() > 5
