@@ -99,20 +99,20 @@ def test_the_visible_level_draws_pellets_that_survive_the_small_preset(backgroun
     assert contrast["visible"] > 0.6 and contrast["thesis"] < 0.3, contrast
 
 
-def test_the_heading_level_is_the_thesis_level_seen_by_a_turning_camera(tmp_path):
-    """Level `heading`: the thesis level's physics and drawing, its camera turning with the
-    player, in the runs that play it and in the data a run collects."""
+def test_the_heading_level_is_the_visible_level_seen_by_a_turning_camera(tmp_path):
+    """Level `heading`: the visible level (the thesis level's physics), its camera turning with
+    the player, in the runs that play it and in the data a run collects."""
     from cdrl.runs.sources import run_game
 
     game, params = run_game(RunConfig(level="heading"))
-    thesis, thesis_params = run_game(RunConfig(level="thesis"))
-    assert game.spec.camera == "heading" and thesis.spec.camera == "north"
-    assert dataclasses.replace(game.spec, camera="north") == thesis.spec and params == thesis_params
+    visible, visible_params = run_game(RunConfig(level="visible"))
+    assert game.spec.camera == "heading" and visible.spec.camera == "north"
+    assert dataclasses.replace(game.spec, camera="north") == visible.spec and params == visible_params
     base = dict(preset="small", episodes=2, episode_steps=8, data="game", variant="main_action")
     first = {}
-    for level in ("thesis", "heading"):
+    for level in ("visible", "heading"):
         train, _ = load_episodes(RunConfig(level=level, **base), tmp_path)
         first[level] = train[0]
     # the same games and actions (the same seed), other frames
-    np.testing.assert_array_equal(first["thesis"].actions, first["heading"].actions)
-    assert np.abs(first["thesis"].frames.astype(int) - first["heading"].frames).mean() > 5
+    np.testing.assert_array_equal(first["visible"].actions, first["heading"].actions)
+    assert np.abs(first["visible"].frames.astype(int) - first["heading"].frames).mean() > 5
