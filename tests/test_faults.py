@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from cdrl.cli import main as cli_main
+from cdrl.runs.checksums import has_checksums
 from cdrl.data.lock import LOCK_NAME, DirLock, LockedError
 from cdrl.training.loop import Job, Plan, Sink, host_loop
 
@@ -53,11 +54,12 @@ def _kill(proc: subprocess.Popen) -> None:
 
 
 def _finished_checkpoints(ckpt_dir: Path) -> list[int]:
-    """Steps of the checkpoints orbax has finished (it renames '<step>.orbax-checkpoint-tmp-*'
-    to '<step>' when one is complete)."""
+    """Steps of the finished checkpoints: orbax renames '<step>.orbax-checkpoint-tmp-*' to
+    '<step>' when its save is complete, and the save then writes the checksums; a checkpoint
+    without them (a kill between the two) is unfinished, and a resume skips it."""
     if not ckpt_dir.exists():
         return []
-    return sorted(int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit())
+    return sorted(int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit() and has_checksums(p))
 
 
 def _records(path: Path) -> list[dict]:

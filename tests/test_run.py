@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from cdrl.cli import main as cli_main
+from cdrl.runs.checksums import has_checksums
 
 SMALL_RUN = ["--data", "synthetic", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30",
              "--unroll", "8", "--batch", "2", "--lr", "0.3", "--eval-every", "0", "--eval-episodes", "1"]
@@ -32,11 +33,12 @@ def _losses(run_dir: Path) -> list[float]:
 
 
 def _finished_checkpoints(ckpt_dir: Path) -> list[int]:
-    """Steps of the checkpoints orbax has finished: it writes each one to a temporary
-    directory ('<step>.orbax-checkpoint-tmp-...') and renames it to '<step>' when complete."""
+    """Steps of the finished checkpoints: orbax renames '<step>.orbax-checkpoint-tmp-*' to
+    '<step>' when its save is complete, and the save then writes the checksums; a checkpoint
+    without them (a kill between the two) is unfinished, and a resume skips it."""
     if not ckpt_dir.exists():
         return []
-    return sorted(int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit())
+    return sorted(int(p.name) for p in ckpt_dir.iterdir() if p.name.isdigit() and has_checksums(p))
 
 
 @pytest.mark.default_opt
