@@ -83,17 +83,63 @@ def test_the_privileged_policy_outscores_random_turning():
     assert p["ci95"][0] > n["ci95"][1], (p, n)
 
 
-def test_lambda_returns_against_the_recursion():
-    """R_k = r_k + gamma ((1 - lambda) V_{k+1} + lambda R_{k+1}), R_H = V_H, by a loop."""
+def test_lambda_returns_against_the_recursion_with_episode_ends():
+    """R_k = r_k + gamma d_k ((1 - lambda) V_{k+1} + lambda R_{k+1}), R_K = last, by a loop;
+    d_k = 1 by default, and d_k = 0 ends the sum (lambda 1: the discounted rewards to the
+    episode's end; lambda 0: one-step TD)."""
     rng = np.random.default_rng(0)
-    r, v = rng.normal(size=(6, 3)).astype(np.float32), rng.normal(size=(6, 3)).astype(np.float32)
-    gamma, lam = 0.9, 0.7
-    out = np.asarray(dream.lambda_returns(jnp.asarray(r), jnp.asarray(v), jnp.asarray(v[-1]), gamma, lam))
-    ref, nxt = np.zeros_like(r), v[-1]
-    for k in reversed(range(6)):
-        nxt = r[k] + gamma * ((1 - lam) * v[k] + lam * nxt)
-        ref[k] = nxt
-    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+    r, v = rng.normal(size=(7, 2)).astype(np.float32), rng.normal(size=(7, 2)).astype(np.float32)
+    last = rng.normal(size=2).astype(np.float32)
+    ended = np.ones((7, 2), np.float32)
+    ended[3, 0] = 0.0
+    for d in (None, ended):
+        for lam in (0.0, 0.6, 1.0):
+            out = np.asarray(dream.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, lam,
+                                                  None if d is None else jnp.asarray(d)))
+            ref, nxt = np.zeros_like(r), last
+            for k in reversed(range(7)):
+                nxt = r[k] + 0.9 * (1.0 if d is None else d[k]) * ((1 - lam) * v[k] + lam * nxt)
+                ref[k] = nxt
+            np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+    mc = np.asarray(dream.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, 1.0, jnp.asarray(ended)))
+    assert mc[0, 0] == pytest.approx(sum(0.9 ** k * r[k, 0] for k in range(4)), rel=1e-5)
+
+
+def test_the_value_controller_ascends_the_exact_expected_value_of_its_buttons():
+    """`value`: the 8 button combinations' probabilities under independent Bernoullis sum to 1;
+    the objective's expected Q equals the sum, combination by combination, of P(combo) times
+    the critic on the model's state one imagined step after pressing it (`imagine_step` by
+    hand); its gradient reaches the controller's probabilities, not the Q values."""
+    probs = jnp.asarray([[0.9, 0.2, 0.5], [0.1, 0.7, 0.05]])
+    logp = dream.button_log_probs(probs)
+    np.testing.assert_allclose(np.exp(logp).sum(axis=0), 1.0, rtol=1e-5)
+    combo = list(map(tuple, np.asarray(dream.BUTTON_COMBOS))).index((1.0, 0.0, 1.0))
+    np.testing.assert_allclose(np.exp(logp[combo]), [0.9 * 0.8 * 0.5, 0.1 * 0.3 * 0.05], rtol=1e-5)
+
+    v = make_variant("final_proposal", TINY)
+    params = v.init(jax.random.PRNGKey(0))
+    critic = dream.nets.init_mlp(jax.random.PRNGKey(1), (TINY.lstm_size, 8, 1), final_selu=False)
+    t, b = 4, 2
+    rng = np.random.default_rng(2)
+    from cdrl.data.stream import Chunk
+    chunk = Chunk(obs=jnp.asarray(rng.uniform(size=(t, b, 16, 16)), jnp.float32),
+                  next_obs=jnp.asarray(rng.uniform(size=(t, b, 16, 16)), jnp.float32),
+                  action=jnp.asarray(rng.integers(0, 2, size=(t, b, 3)), jnp.float32),
+                  reward=jnp.asarray(rng.normal(size=(t, b)), jnp.float32), is_first=jnp.zeros((t, b), bool))
+    carry, _, frame = dream._starts(v, params, chunk, v.init_carry(b))
+    hp = dream.DreamHParams.create(HParams.create(v), entropy=0.0)
+    n = t * b
+    probs = jnp.asarray(rng.uniform(0.05, 0.95, size=(n, 3)), jnp.float32)
+    actor, (_, terms) = dream._value_objective(v, hp, params, critic, chunk, (carry, probs, frame))
+    expected = np.zeros(n)
+    for a in np.asarray(dream.BUTTON_COMBOS):
+        after, _ = v.imagine_step(params, carry, None, jnp.broadcast_to(jnp.asarray(a), (n, 3)))
+        q = np.asarray(dream.critic_value(critic, after["lstm"].h))
+        p = np.prod(np.where(a > 0, np.asarray(probs), 1 - np.asarray(probs)), axis=-1)
+        expected += p * q
+    assert float(terms["imagined_return"]) == pytest.approx(expected.mean(), rel=1e-4, abs=1e-6)
+    grad = jax.grad(lambda pr: dream._value_objective(v, hp, params, critic, chunk, (carry, pr, frame))[0])(probs)
+    assert np.abs(np.asarray(grad)).max() > 0
 
 
 def test_closed_loop_minus_imagines_on_a_zero_error():
@@ -135,24 +181,24 @@ def test_the_replay_buffer_is_a_ring():
     np.testing.assert_array_equal(replay.obs[0, :, 0, 0, 0], [51, 51, 51, 64])
 
 
-@pytest.fixture(scope="module")
-def learner():
+def _left_bonus_learner(controller: str):
     g, params = games.left_bonus_game()
     v = make_variant("final_proposal", TINY)
-    cfg = dream.DreamConfig(num_envs=8, unroll=8, replay=16, model_updates=2, horizon=5, controller="critic")
+    cfg = dream.DreamConfig(num_envs=8, unroll=8, replay=16, model_updates=2, horizon=5, controller=controller)
     hp = dream.DreamHParams.create(HParams.create(v, opt=OptHParams.create(lr=0.1, momentum=0.9)), warmup_steps=5,
                                    ctrl_opt=OptHParams.create("adam", lr=1e-3))
     return g, params, v, cfg, hp, dream.init_dream(v, g, params, cfg, jax.random.PRNGKey(0), hp)
 
 
-def test_controller_updates_move_the_controller_only(learner):
+def test_controller_updates_move_the_controller_only():
     """The controller's objective changes the controller (the FC's action-code columns and
     D_a) and nothing else; the model's updates leave the controller as it was."""
-    g, params, v, cfg, hp, state = learner
-    state = jax.tree.map(jnp.copy, state)
+    g, params, v, cfg, hp, state = _left_bonus_learner("critic")
     mask = v.controller_mask(state.model.params)
     key = jax.random.PRNGKey(3)
-    ctrl_only, _ = jax.jit(dream._controller_update, static_argnums=(0, 1))(v, cfg, state, hp, _starts(v, state), key, 1.0)
+    chunk, _ = _filled(state).chunk(0)
+    ctrl_only, _ = jax.jit(dream._controller_update, static_argnums=(0, 1))(v, cfg, state, hp, _starts(v, state), key,
+                                                                            1.0, chunk)
     moved = jax.tree.map(lambda a, b: np.asarray(a != b), ctrl_only.model.params, state.model.params)
     assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
     assert not any(np.any(m & (k == 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
@@ -175,11 +221,12 @@ def _starts(v, state):
     return jax.jit(dream._starts, static_argnums=0)(v, state.model.params, chunk, carry)
 
 
-def test_the_controller_learns_a_trivially_learnable_reward_in_imagination(learner):
-    """With a bonus for turning left, the actor-critic in imagination teaches the controller to
-    turn left: its noise-free return on held-out seeds clearly beats the uniform-random policy's."""
-    g, params, v, cfg, hp, state = learner
-    state = jax.tree.map(jnp.copy, state)
+@pytest.mark.parametrize("controller", ["critic", "value"])
+def test_the_controller_learns_a_trivially_learnable_reward(controller):
+    """With a bonus for turning left, the actor-critic in imagination (`critic`) and the action
+    values read one model step ahead (`value`) teach the controller to turn left: its noise-free
+    return on held-out seeds clearly beats the uniform-random policy's."""
+    g, params, v, cfg, hp, state = _left_bonus_learner(controller)
     for _ in range(60):
         state, metrics = dream.dream_step(v, g, cfg, state, hp, params)
     assert float(metrics["controller_on"]) == 1.0 and not bool(metrics["diverged"])

@@ -50,6 +50,8 @@ CONFIGS: dict[str, dict] = {
     "critic-open": {"variant": "reward_prediction", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
     "critic-pre": {"variant": "final_proposal", "controller": "critic",
                    "pretrain": {"variant": "final_proposal", "controller": "none"}},
+    "value-pre": {"variant": "final_proposal", "controller": "value", "gamma": 0.95, "entropy_coef": 0.05,
+                  "pretrain": {"variant": "final_proposal", "controller": "none"}},
     "ppo": {"variant": "ppo"},
     "ppo-10x": {"variant": "ppo", "frames_factor": 10},
 }

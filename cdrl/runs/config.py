@@ -124,25 +124,26 @@ class RunConfig:
     reward_weight: float = _recipe_opt("online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum "
                                        "0.9 oscillates on it at 1)")
     noise_std: float = _opt(0.3, "online variants: exploration: the std of the noise on the controller's actions "
-                                 "(rollout), the chance a button is drawn uniformly (imagine, critic)")
+                                 "(rollout), the chance a button is drawn uniformly (imagine, critic, value)")
     noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration")
     warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")
     controller: str = _opt("rollout", "online variants: how the controller learns: rollout (the thesis: reward "
                                       "ascent through the real chunk), imagine (ascent through imagined rollouts), "
-                                      "critic (an actor-critic in imagination); imagine and critic keep a replay "
-                                      "buffer. none: no controller, the world model learns offline on recorded "
+                                      "critic (an actor-critic in imagination), value (the buttons' values one "
+                                      "model step ahead, learnt from real returns); imagine, critic and value keep a "
+                                      "replay buffer. none: no controller, the world model learns offline on recorded "
                                       "episodes (their actions and rewards), a start for --init-from")
     init_from: str = _opt("", "a run directory whose trained world model (its newest good checkpoint; same variant "
                               "and preset) this run starts from, with its input normalisation ('': a fresh model)")
-    replay: int = _opt(64, "online variants, imagine and critic: chunks kept in the replay buffer")
-    model_updates: int = _opt(4, "online variants, imagine and critic: model updates per collected chunk")
+    replay: int = _opt(64, "online variants, imagine, critic and value: chunks kept in the replay buffer")
+    model_updates: int = _opt(4, "online variants, imagine, critic and value: model updates per collected chunk")
     horizon: int = _opt(15, "online variants, imagine and critic: imagined steps")
-    ctrl_lr: float = _opt(3e-4, "online variants, imagine and critic: Adam learning rate of the controller and critic")
-    gamma: float = _opt(0.99, "ppo, critic and imagine: discount of future reward")
-    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation; critic: of the lambda-returns")
+    ctrl_lr: float = _opt(3e-4, "online variants, imagine, critic and value: Adam learning rate of the controller and critic")
+    gamma: float = _opt(0.99, "ppo, critic, value and imagine: discount of future reward")
+    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation; critic and value: of the lambda-returns")
     clip_eps: float = _opt(0.2, "ppo: clip range of the probability ratio (and of the value)")
     value_coef: float = _opt(0.5, "ppo: weight of the value loss")
-    entropy_coef: float = _opt(0.01, "ppo: weight of the entropy bonus")
+    entropy_coef: float = _opt(0.01, "ppo, critic and value: weight of the entropy bonus")
     ppo_epochs: int = _opt(4, "ppo: passes over each rollout")
     ppo_minibatches: int = _opt(4, "ppo: minibatches per pass (batch x unroll must divide by it)")
     multistep: str = _opt("1", "offline runs: multi-step training: K feeds the model its own prediction between "

@@ -35,6 +35,7 @@ reward" to please the controller (what scope `all` of the thesis's ascent does).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from typing import Any
 
 import flax.struct
@@ -49,7 +50,9 @@ from cdrl.training.online import Games, copy_scores, reset_games, step_games
 from cdrl.training.optim import HParams, OptHParams, init_opt_state
 from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
 
-CONTROLLERS = ("imagine", "critic")
+CONTROLLERS = ("imagine", "critic", "value")
+# Every combination of the three buttons (right, left, accelerate), pressed 1.0 or released 0.0.
+BUTTON_COMBOS = jnp.asarray(list(itertools.product((0.0, 1.0), repeat=3)), jnp.float32)
 CRITIC_HIDDEN = 128
 
 
@@ -252,15 +255,18 @@ def imagine(variant: Variant, cfg: DreamConfig, params, carry, action, frame, ke
     return traj
 
 
-def lambda_returns(rewards, values, last, gamma, lam):
-    """R_k = r_k + γ ((1 - λ) V_{k+1} + λ R_{k+1}), R_H = V_H: λ-returns of `[H, N]` rewards
-    with the values V_1 .. V_H (`values`, after each step) and the bootstrap `last` = V_H."""
+def lambda_returns(rewards, values, last, gamma, lam, not_done=None):
+    """R_k = r_k + γ d_k ((1 - λ) V_{k+1} + λ R_{k+1}), R_H = `last`: λ-returns of `[H, N]`
+    rewards with the values V_1 .. V_H after each step; `not_done` d_k (default 1) is 0 where the
+    episode ended with r_k, which then bootstraps nothing."""
+    not_done = jnp.ones_like(rewards) if not_done is None else jnp.broadcast_to(not_done, rewards.shape)
+
     def body(nxt, x):
-        r, v_next = x
-        ret = r + gamma * ((1.0 - lam) * v_next + lam * nxt)
+        r, v_next, nd = x
+        ret = r + gamma * nd * ((1.0 - lam) * v_next + lam * nxt)
         return ret, ret
 
-    _, rets = jax.lax.scan(body, last, (rewards, values), reverse=True)
+    _, rets = jax.lax.scan(body, last, (rewards, values, not_done), reverse=True)
     return rets
 
 
@@ -294,12 +300,72 @@ def _controller_objective(variant, cfg, hp, params, critic, starts, key):
                                       "entropy": jnp.mean(ent)})
 
 
-def _controller_update(variant, cfg, state: DreamState, hp: DreamHParams, starts, key, on):
+def after_one_step(variant: Variant, params, carry, frame, buttons):
+    """The model's state after one imagined step from `carry` (`[N, ...]`, its prediction
+    `frame`) taking `buttons` `[N, A]`: what pressing them next leads to, as the model sees it."""
+    return variant.imagine_step(params, carry, frame, buttons)[0]
+
+
+def button_log_probs(probs: jax.Array) -> jax.Array:
+    """log P(combo) `[8, N]` of every button combination under independent Bernoulli(`probs` `[N, 3]`)."""
+    p = jnp.clip(probs, 1e-6, 1 - 1e-6)
+    c = BUTTON_COMBOS[:, None, :]
+    return jnp.sum(c * jnp.log(p)[None] + (1.0 - c) * jnp.log1p(-p)[None], axis=-1)
+
+
+def _value_objective(variant, hp, params, critic, chunk: Chunk, starts):
+    """`value`: an action value read through the model's step, learnt from the real returns.
+
+    The carry c_t has seen o_t and a_t; the controller's output there, ã_{t+1}, is the
+    probability of each button at t + 1, before o_{t+1} is seen. Q(c_t, a) = W(h of the state
+    after one imagined step from c_t taking a): the critic W reads the core after the model
+    has taken the action, so the action's effect goes through the world model's own dynamics.
+    W learns from the chunk's real rewards: for the executed a_{t+1}, the λ-return of the
+    real r_{t+2}, r_{t+3}, ... bootstrapped with W of the same one-step states further along.
+    The controller ascends the expected Q under its Bernoulli buttons, summed exactly over the
+    8 combinations (no sampling), plus an entropy bonus; the Q values are behind a
+    stop-gradient, so the gradient reaches the controller through its probabilities only."""
+    carry, probs, frame = starts  # [T * B, ...], probs: ã_{t+1} with the gradient of the controller
+    t, b = chunk.is_first.shape
+    fixed = jax.lax.stop_gradient(params)
+    # Q of every combination from every carry: [8, T * B]
+    q_all = jax.vmap(lambda a: critic_value(critic, variant.features(
+        after_one_step(variant, fixed, carry, frame, jnp.broadcast_to(a, probs.shape)))))(BUTTON_COMBOS)
+    q_all = jax.lax.stop_gradient(q_all)
+    expected = jnp.sum(jnp.exp(button_log_probs(probs)) * q_all, axis=0)
+    p = jnp.clip(probs, 1e-6, 1 - 1e-6)
+    ent = -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
+    # E[Q] + α H: the factorised policy closest (in KL) to softmax(Q / α) over the combinations;
+    # α (`entropy`) is in the units of the return
+    actor_loss = -jnp.mean(expected) - hp.entropy * jnp.mean(ent)
+    # The critic on the executed buttons: W(q_k), q_k = one step from c_{k-1} taking a_k, k = 1 .. T - 1.
+    grid = lambda x: x.reshape((t, b) + x.shape[1:])  # noqa: E731
+    prev = jax.tree.map(lambda x: grid(x)[:-1].reshape((-1,) + x.shape[1:]), (carry, frame))
+    executed = chunk.action[1:].reshape(-1, chunk.action.shape[-1])
+    w = critic_value(critic, variant.features(after_one_step(variant, fixed, *prev, executed))).reshape(t - 1, b)
+    # targets for k = 1 .. T - 2 (the last one bootstraps them): r_{k+1} + γ ..., no bootstrap
+    # across an episode's end; q_k is not a state of the episode that o_k starts
+    not_done = (~chunk.is_first[2:]).astype(jnp.float32)
+    targets = lambda_returns(chunk.reward[1:-1], jax.lax.stop_gradient(w[1:]), jax.lax.stop_gradient(w[-1]),
+                             hp.gamma, hp.lam, not_done)
+    valid = (~chunk.is_first[1:-1]).astype(jnp.float32)
+    critic_loss = 0.5 * jnp.sum(valid * jnp.square(w[:-1] - targets)) / jnp.maximum(jnp.sum(valid), 1.0)
+    gap = jnp.max(q_all, axis=0) - jnp.min(q_all, axis=0)
+    return actor_loss, (critic_loss, {"imagined_return": jnp.mean(expected), "critic_loss": critic_loss,
+                                      "entropy": jnp.mean(ent), "q_gap": jnp.mean(gap)})
+
+
+def _controller_update(variant, cfg, state: DreamState, hp: DreamHParams, starts, key, on, chunk: Chunk):
     params = state.model.params
     mask = variant.controller_mask(params)
 
     def losses(p, critic):
-        actor, (critic_loss, terms) = _controller_objective(variant, cfg, hp, p, critic, starts, key)
+        if cfg.controller == "value":
+            carry, _, frame = starts
+            probs = variant.heads(p, variant.fc(p, variant.features(carry)))["action"]
+            actor, (critic_loss, terms) = _value_objective(variant, hp, p, critic, chunk, (carry, probs, frame))
+        else:
+            actor, (critic_loss, terms) = _controller_objective(variant, cfg, hp, p, critic, starts, key)
         return hp.ascent * on * actor + critic_loss, (actor, terms)
 
     (total, (actor, terms)), (g_params, g_critic) = jax.value_and_grad(losses, argnums=(0, 1), has_aux=True)(
@@ -333,7 +399,7 @@ def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, h
         replayed, carry = state.replay.chunk(jax.random.randint(k_draw, (), 0, state.replay.filled))
         state, model_m = _model_update(variant, state, hp, replayed, carry)
         starts = _starts(variant, jax.lax.stop_gradient(state.model.params), replayed, carry)
-        state, ctrl_terms = _controller_update(variant, cfg, state, hp, starts, k_imagine, on)
+        state, ctrl_terms = _controller_update(variant, cfg, state, hp, starts, k_imagine, on, replayed)
         return state, (model_m, ctrl_terms)
 
     state, (model_m, ctrl_m) = jax.lax.scan(learn, state, jax.random.split(k_model, cfg.model_updates))
