@@ -41,6 +41,7 @@ from typing import Any
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cdrl.data.frames import pixel_bce
 from cdrl.data.stream import Chunk
@@ -52,7 +53,7 @@ from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once,
 
 CONTROLLERS = ("imagine", "critic", "value")
 # Every combination of the three buttons (right, left, accelerate), pressed 1.0 or released 0.0.
-BUTTON_COMBOS = jnp.asarray(list(itertools.product((0.0, 1.0), repeat=3)), jnp.float32)
+BUTTON_COMBOS = np.asarray(list(itertools.product((0.0, 1.0), repeat=3)), np.float32)
 CRITIC_HIDDEN = 128
 
 
