@@ -129,16 +129,16 @@ def _cmd_lr_search(args) -> int:
     from cdrl.runs.sweep import lr_search
 
     try:
-        result = lr_search(RunConfig(**_options(args, skip=("lr", "steps", "diverge_threshold"))),
-                           args.candidates, args.probe_steps, args.threshold)
+        result = lr_search(RunConfig(**_options(args, skip=("lr", "steps", "diverge_threshold", "seed"))),
+                           args.candidates, args.probe_steps, args.threshold, seeds=getattr(args, "seed", ()))
     except USER_ERRORS as exc:
         print(f"cdrl lr-search: {exc}", file=sys.stderr)
         return 2
     for c in result["candidates"]:
         why = c["rejected"]
         verdict = "ok" if why is None else (
-            f"rejected at step {why['step']}: {why['group']} ratio {why['ratio']:.3g}"
-            + ("" if why["finite"] else " (non-finite)"))
+            f"rejected at step {why['step']}{'' if len(result['seeds']) == 1 else ' of seed ' + str(why['seed'])}: "
+            f"{why['group']} ratio {why['ratio']:.3g}" + ("" if why["finite"] else " (non-finite)"))
         print(f"lr {c['lr']:<8g} largest kernel ratio {c['max_ratio']:<10.3g} {verdict}")
     chosen = result["chosen"]
     print(f"chosen learning rate: {chosen:g}" if chosen is not None else
@@ -290,7 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--probe-steps", type=int, default=50, help="training steps of the probe (default: 50)")
     ls.add_argument("--threshold", type=float, default=LR_THRESHOLD,
                     help=f"largest allowed kernel norm ratio ||grad||/||param|| (default: {LR_THRESHOLD})")
-    _add_config_options(ls, skip=("lr", "steps", "diverge_threshold"))
+    _add_config_options(ls, several=("seed",), skip=("lr", "steps", "diverge_threshold"))
     ls.set_defaults(func=_cmd_lr_search)
 
     ev = command("eval", help="evaluate trained runs on their held-out episodes and print a table")

@@ -1,5 +1,6 @@
 """Sweeps: one vmapped program equals the separate runs; divergence stops one config only;
 the learning-rate search rejects the rate that blows up and names the group."""
+import dataclasses
 import json
 
 import numpy as np
@@ -76,6 +77,31 @@ def test_lr_search_picks_highest_stable_rate():
     assert result["chosen"] == 0.1
     assert by_lr[1e4]["rejected"] is not None and "/" in by_lr[1e4]["rejected"]["group"]
     assert by_lr[0.1]["rejected"] is None and by_lr[0.1]["max_ratio"] <= 10.0
+
+
+def test_lr_search_over_seeds_probes_each_seed_and_needs_them_all(tmp_path):
+    """Each seed probed as its own single-seed search would be (own initialisation and data);
+    with the threshold between two seeds' largest ratios at a rate, that rate fails as a whole."""
+    base = RunConfig(variant="main", **BASE, recipe="thesis")  # raw input: no per-seed normalisation
+    lrs = [1e4, 0.5, 0.01]
+    alone = {s: lr_search(dataclasses.replace(base, seed=s), lrs, 4, 1e9, progress=False, data_cache=tmp_path)
+             for s in (0, 1)}
+    both = lr_search(base, lrs, 4, 1e9, progress=False, data_cache=tmp_path, seeds=(0, 1))
+    for c in both["candidates"]:
+        for run in c["per_seed"]:
+            single = next(a for a in alone[run["seed"]]["candidates"] if a["lr"] == c["lr"])
+            assert run["max_ratio"] == pytest.approx(single["max_ratio"], rel=1e-5)
+    ratios = {s: next(a for a in alone[s]["candidates"] if a["lr"] == 0.5)["max_ratio"] for s in (0, 1)}
+    assert ratios[0] != ratios[1]
+    between = (ratios[0] + ratios[1]) / 2
+    worse = max(ratios, key=ratios.get)
+    split = lr_search(base, lrs, 4, between, progress=False, data_cache=tmp_path, seeds=(0, 1))
+    by_lr = {c["lr"]: c for c in split["candidates"]}
+    assert by_lr[0.5]["rejected"]["seed"] == worse
+    assert [r["rejected"] is None for r in by_lr[0.5]["per_seed"]] == [s != worse for s in (0, 1)]
+    assert split["chosen"] == 0.01 and split["seeds"] == [0, 1]
+    with pytest.raises(ValueError, match="repeat"):
+        lr_search(base, lrs, 4, 1.0, progress=False, data_cache=tmp_path, seeds=(1, 1))
 
 
 def test_sweep_cli_and_bad_input(tmp_path, capsys):

@@ -274,39 +274,54 @@ def format_results(rows: Sequence[dict]) -> str:
 
 
 def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, threshold: float,
-              progress: bool | None = None, data_cache: str | Path = "runs/data-cache") -> dict:
+              progress: bool | None = None, data_cache: str | Path = "runs/data-cache",
+              seeds: Sequence[int] = ()) -> dict:
     """The thesis's learning-rate search: probe every candidate rate for `probe_steps` steps
     in one vmapped program; a candidate is rejected as soon as a group's norm ratio exceeds
-    `threshold` (or anything becomes non-finite). Returns the highest rate that survives
-    (`chosen`, None if none does) and, per candidate, the largest ratio seen and, for the
-    rejected ones, the step and parameter group that rejected them. Kernels are watched,
-    not biases (see `cdrl.training.step.watched_groups`). Game data is cached under `data_cache`."""
+    `threshold` (or anything becomes non-finite). With `seeds`, every candidate is probed on
+    every seed (each its own initialisation and, for game data, its own data set) and passes
+    only if it passes on all of them: the rate a sweep over those seeds can train at.
+    Returns the highest rate that survives (`chosen`, None if none does) and, per candidate,
+    the largest ratio seen on any seed and, for a rejected one, the seed, step and parameter
+    group that rejected it first (`per_seed`: each seed's own). Kernels are watched, not
+    biases (see `cdrl.training.step.watched_groups`). Game data is cached under `data_cache`."""
     if not candidates or not all(math.isfinite(c) and c > 0 for c in candidates):
         raise ValueError(f"the learning-rate candidates must be finite numbers > 0, got {list(candidates)}")
     candidates = sorted({float(c) for c in candidates}, reverse=True)
+    seeds = tuple(int(s) for s in seeds) or (base.seed,)
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"the seeds of a learning-rate search repeat a value: {list(seeds)}")
     if probe_steps < 1:
         raise ValueError(f"probe_steps must be >= 1, got {probe_steps}")
     if not (math.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be a finite number > 0, got {threshold}")
     _check_grid(make_variant(base.variant, base.arch))
-    train_eps, _ = load_episodes(base, Path(data_cache))
-    base = with_obs_norm(with_data_dims(dataclasses.replace(base, steps=probe_steps, diverge_threshold=threshold),
-                                        train_eps), Path(data_cache))
-    cfgs = Grid(lr=tuple(candidates)).configs(base)
+    base = dataclasses.replace(base, steps=probe_steps, diverge_threshold=threshold)
+    episodes = {s: load_episodes(dataclasses.replace(base, seed=s), Path(data_cache)) for s in seeds}
+    base = with_obs_norm(with_data_dims(dataclasses.replace(base, seed=seeds[0]), episodes[seeds[0]][0]),
+                         Path(data_cache))  # one architecture and input normalisation, as in a sweep
+    cfgs = Grid(lr=tuple(candidates), seed=seeds).configs(base)
     variant = make_variant(base.variant, base.arch)
-    job = SweepJob(variant, cfgs, make_streams(cfgs, lambda c: train_eps), probe_steps,
+    job = SweepJob(variant, cfgs, make_streams(cfgs, lambda c: episodes[c.seed][0]), probe_steps,
                    ConfigAxis.create(base.devices, len(cfgs)))
     job.desc = f"lr-search x{len(cfgs)}"
     states, alive = job.init()
     sinks = [Sink() for _ in range(job.lanes)]
     show = sys.stderr.isatty() if progress is None else progress
     result = host_loop(job, states, Plan(steps=probe_steps, final_eval=False), sinks, alive, progress=show)
-    largest = [max([r["max_ratio"] for r in sink.steps]
-                   + ([result.diverged[k].ratio if result.diverged[k].finite else math.inf]
-                      if k in result.diverged else []), default=0.0) for k, sink in enumerate(sinks)]
-    rejected = {k: {"step": d.step, "group": d.group, "ratio": d.ratio, "finite": d.finite}
-                for k, d in result.diverged.items()}
-    results = [{"lr": c.lr, "max_ratio": float(largest[i]), "rejected": rejected.get(i)} for i, c in enumerate(cfgs)]
+    per_config = []
+    for k, (cfg, sink) in enumerate(zip(cfgs, sinks)):
+        d = result.diverged.get(k)
+        largest = max([r["max_ratio"] for r in sink.steps] + ([d.ratio if d.finite else math.inf] if d else []),
+                      default=0.0)
+        per_config.append({"seed": cfg.seed, "max_ratio": float(largest), "rejected": None if d is None else
+                           {"step": d.step, "group": d.group, "ratio": d.ratio, "finite": d.finite, "seed": cfg.seed}})
+    results = []
+    for lr in candidates:
+        runs = [r for cfg, r in zip(cfgs, per_config) if cfg.lr == lr]
+        rejections = sorted((r["rejected"] for r in runs if r["rejected"] is not None), key=lambda d: d["step"])
+        results.append({"lr": lr, "max_ratio": max(r["max_ratio"] for r in runs),
+                        "rejected": rejections[0] if rejections else None, "per_seed": runs})
     passing = [r["lr"] for r in results if r["rejected"] is None]
     return {"chosen": max(passing) if passing else None, "threshold": threshold, "probe_steps": probe_steps,
-            "candidates": results}
+            "seeds": list(seeds), "candidates": results}
