@@ -56,7 +56,7 @@ def main(argv=None) -> int:
             if not (RunDir(run_dir).path / "config.json").is_file():
                 train_run(RunConfig(variant="main", preset="small", steps=args.steps, seed=seed, multistep=curriculum,
                                     eval_every=1000, checkpoint_every=1000), run_dir, progress=False)
-            elif load_run(run_dir).metrics[-1]["step"] < args.steps:
+            elif load_run(run_dir).metrics[-1]["step"] + 1 < args.steps:  # steps count from 0
                 train_run(None, run_dir, resume=True, progress=False)
             run = load_run(run_dir)
             model, (_, test) = restore_model(run), run_episodes(run, args.episodes)
