@@ -1,6 +1,8 @@
 """Control: the reference policies and the protocol every controller is measured with, and the
 learner whose controller trains in imagination (`cdrl.training.dream`): its pieces against
 equations and independent paths, and a reward any controller can learn."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -103,6 +105,33 @@ def test_lambda_returns_against_the_recursion_with_episode_ends():
             np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
     mc = np.asarray(dream.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, 1.0, jnp.asarray(ended)))
     assert mc[0, 0] == pytest.approx(sum(0.9 ** k * r[k, 0] for k in range(4)), rel=1e-5)
+
+
+def test_real_returns_score_each_decision_by_the_rewards_after_its_buttons():
+    """`real`: the output of step t chooses a_{t+1}, which earns r_{t+2} (`reward[t + 1]`); by a
+    loop over the chunk, R_t = r_{t+2} + gamma ((1 - lambda) V_{t+1} + lambda R_{t+1}), cut where
+    o_{t+2} starts a new episode, R_{T-1} = V_{T-1}; a decision counts unless o_{t+1} starts one."""
+    rng = np.random.default_rng(1)
+    t, b, gamma, lam = 6, 2, 0.9, 0.7
+    reward, values = rng.normal(size=(t, b)).astype(np.float32), rng.normal(size=(t, b)).astype(np.float32)
+    first = np.zeros((t, b), bool)
+    first[3, 0] = True  # game 0 starts again at o_3
+    after = np.array([False, True])  # game 1 starts again at o_6, after the chunk
+    rets, valid = dream.real_advantages(jnp.asarray(values), jnp.asarray(reward), jnp.asarray(first),
+                                        jnp.asarray(after), gamma, lam)
+    starts = np.concatenate([first, after[None]])
+    ref = np.zeros((t - 1, b), np.float32)
+    for j in range(b):
+        nxt = values[-1, j]
+        for k in reversed(range(t - 1)):
+            cont = 0.0 if starts[k + 2, j] else 1.0
+            nxt = reward[k + 1, j] + gamma * cont * ((1 - lam) * values[k + 1, j] + lam * nxt)
+            ref[k, j] = nxt
+    np.testing.assert_allclose(np.asarray(rets), ref, rtol=1e-5, atol=1e-6)
+    assert ref[1, 0] == pytest.approx(reward[2, 0])  # a_2 ends game 0's episode with r_3: nothing after
+    assert ref[4, 1] == pytest.approx(reward[5, 1])
+    np.testing.assert_array_equal(np.asarray(valid), ~starts[1:-1])
+    assert not valid[2, 0] and valid[3, 0]  # a_3 is released at a new episode's start; a_4 is drawn
 
 
 def test_the_value_controller_ascends_the_exact_expected_value_of_its_buttons():
@@ -209,6 +238,27 @@ def test_controller_updates_move_the_controller_only():
         np.testing.assert_array_equal(np.asarray(new)[np.asarray(k) > 0], np.asarray(old)[np.asarray(k) > 0])
 
 
+@pytest.mark.parametrize("scope", ["controller", "all"])
+def test_the_real_controller_moves_its_scope_only_and_starts_on_policy(scope):
+    """`real` updates the controller and the critic from the chunk just played; with scope
+    `controller` the world model is untouched, with `all` its core and encoder move too. At its
+    first pass the probability ratio of every decision is 1: the states it recomputes from the
+    chunk's start (scope `all`) are those the buttons were drawn in while acting."""
+    g, params, v, cfg, hp, state = _left_bonus_learner("real")
+    carry0 = state.model.carry
+    acted, chunk, _ = jax.jit(dream._act, static_argnums=(0, 1, 2))(v, g, cfg, state, params, 0.3)
+    mask = v.controller_mask(acted.model.params)
+    one = dataclasses.replace(cfg, epochs=1, scope=scope)
+    new, terms = jax.jit(dream._real_update, static_argnums=(0, 1))(v, one, acted, hp, chunk, carry0, 0.3, 1.0)
+    assert float(terms["clip_fraction"]) == 0.0 and np.isfinite(float(terms["critic_loss"]))
+    moved = jax.tree.map(lambda a, b: np.asarray(a != b), new.model.params, acted.model.params)
+    assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
+    assert any(np.any(m & (k == 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask))) == (scope == "all")
+    core_moved = np.any(np.asarray(new.model.params["lstm"]["w_input"] != acted.model.params["lstm"]["w_input"]))
+    assert core_moved == (scope == "all")
+    assert any(np.any(np.asarray(a != b)) for a, b in zip(jax.tree.leaves(new.critic), jax.tree.leaves(acted.critic)))
+
+
 def _filled(state):
     """The buffer with one chunk of the first frames in it."""
     s = state.replay
@@ -221,10 +271,11 @@ def _starts(v, state):
     return jax.jit(dream._starts, static_argnums=0)(v, state.model.params, chunk, carry)
 
 
-@pytest.mark.parametrize("controller", ["critic", "value"])
+@pytest.mark.parametrize("controller", ["critic", "value", "real"])
 def test_the_controller_learns_a_trivially_learnable_reward(controller):
-    """With a bonus for turning left, the actor-critic in imagination (`critic`) and the action
-    values read one model step ahead (`value`) teach the controller to turn left: its noise-free
+    """With a bonus for turning left, the actor-critic in imagination (`critic`), the action
+    values read one model step ahead (`value`) and the actor-critic on the real chunks (`real`)
+    teach the controller to turn left: its noise-free
     return on held-out seeds clearly beats the uniform-random policy's."""
     g, params, v, cfg, hp, state = _left_bonus_learner(controller)
     for _ in range(60):

@@ -12,6 +12,8 @@ greedy buttons. The reference policies play the same games once: they do not lea
   rollout       final_proposal, the thesis's reward ascent through the real chunk, scope controller
   rollout-all   the same, scope all (the thesis's literal wording: is reward hallucinated?)
   critic-open   reward_prediction (open loop on observations), as `critic`: does closed loop − help?
+  real-pre      on `critic-pre`'s world model, an actor-critic on the real states of the chunks played,
+                from their real rewards (`--controller real`; exploration 0.05, no warm-up)
   critic-pre    `critic` on a world model learnt offline first (`--controller none`, on the data
                 the run collects: 60 episodes of uniform-random play) and trained on online
                 (`--init-from`); its game frames count the pre-training data's
@@ -52,6 +54,10 @@ CONFIGS: dict[str, dict] = {
                    "pretrain": {"variant": "final_proposal", "controller": "none"}},
     "value-pre": {"variant": "final_proposal", "controller": "value", "gamma": 0.95, "entropy_coef": 0.05,
                   "pretrain": {"variant": "final_proposal", "controller": "none"}},
+    "real-pre": {"variant": "final_proposal", "controller": "real", "noise_std": 0.05, "warmup_steps": 0,
+                 "pretrain": {"variant": "final_proposal", "controller": "none"}},
+    "real-pre-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
+                     "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none"}},
     "ppo": {"variant": "ppo"},
     "ppo-10x": {"variant": "ppo", "frames_factor": 10},
 }
@@ -102,10 +108,10 @@ def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = Non
     batch, unroll = budget.ppo_shape if options["variant"] == "ppo" else budget.model_shape
     steps = max(1, budget.frames * factor // (batch * unroll))
     every = max(1, steps // budget.evals)
+    options = {"warmup_steps": budget.warmup_steps, **options}
     return RunConfig(preset=budget.preset, batch=batch, unroll=unroll, steps=steps, seed=seed, eval_every=every,
                      checkpoint_every=every, eval_episodes=budget.eval_episodes, episode_steps=budget.episode_steps,
-                     warmup_steps=budget.warmup_steps, tensorboard=False, init_from=str(init_from or ""),
-                     level=budget.level, **options)
+                     tensorboard=False, init_from=str(init_from or ""), level=budget.level, **options)
 
 
 def train_or_read(cfg: RunConfig, run_dir: Path) -> float:

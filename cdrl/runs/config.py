@@ -119,7 +119,8 @@ class RunConfig:
     eval_episodes: int = _opt(4, "held-out episodes per evaluation (online variants: games per policy)")
     tensorboard: bool = _opt(True, "also write TensorBoard event files to RUN_DIR/tb (view: tensorboard --logdir runs)")
     env: str = _opt("", "game parameters over the level's, e.g. 'max_steps=300,pellet_init_fill=0.3'")
-    scope: str = _opt("controller", "online variants: parameters the reward ascent may change: controller or all")
+    scope: str = _opt("controller", "online variants, rollout and real: parameters the reward ascent (rollout) or the "
+                                    "actor-critic (real) may change: controller or all")
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
     reward_weight: float = _recipe_opt("online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum "
                                        "0.9 oscillates on it at 1)")
@@ -130,21 +131,22 @@ class RunConfig:
     controller: str = _opt("rollout", "online variants: how the controller learns: rollout (the thesis: reward "
                                       "ascent through the real chunk), imagine (ascent through imagined rollouts), "
                                       "critic (an actor-critic in imagination), value (the buttons' values one "
-                                      "model step ahead, learnt from real returns); imagine, critic and value keep a "
-                                      "replay buffer. none: no controller, the world model learns offline on recorded "
+                                      "model step ahead, learnt from real returns), real (an actor-critic on the model's "
+                                      "states of the chunk just played, from its real rewards); imagine, critic, value "
+                                      "and real keep a replay buffer. none: no controller, the world model learns offline on recorded "
                                       "episodes (their actions and rewards), a start for --init-from")
     init_from: str = _opt("", "a run directory whose trained world model (its newest good checkpoint; same variant "
                               "and preset) this run starts from, with its input normalisation ('': a fresh model)")
-    replay: int = _opt(64, "online variants, imagine, critic and value: chunks kept in the replay buffer")
-    model_updates: int = _opt(4, "online variants, imagine, critic and value: model updates per collected chunk")
+    replay: int = _opt(64, "online variants, imagine, critic, value and real: chunks kept in the replay buffer")
+    model_updates: int = _opt(4, "online variants, imagine, critic, value and real: model updates per collected chunk")
     horizon: int = _opt(15, "online variants, imagine and critic: imagined steps")
-    ctrl_lr: float = _opt(3e-4, "online variants, imagine, critic and value: Adam learning rate of the controller and critic")
+    ctrl_lr: float = _opt(3e-4, "online variants, imagine, critic, value and real: Adam learning rate of the controller and critic")
     gamma: float = _opt(0.99, "ppo, critic, value and imagine: discount of future reward")
-    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation; critic and value: of the lambda-returns")
-    clip_eps: float = _opt(0.2, "ppo: clip range of the probability ratio (and of the value)")
+    gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation; critic, value and real: of the lambda-returns")
+    clip_eps: float = _opt(0.2, "ppo and real: clip range of the probability ratio (and of the value)")
     value_coef: float = _opt(0.5, "ppo: weight of the value loss")
-    entropy_coef: float = _opt(0.01, "ppo, critic and value: weight of the entropy bonus")
-    ppo_epochs: int = _opt(4, "ppo: passes over each rollout")
+    entropy_coef: float = _opt(0.01, "ppo, critic, value and real: weight of the entropy bonus")
+    ppo_epochs: int = _opt(4, "ppo and real: passes over each rollout")
     ppo_minibatches: int = _opt(4, "ppo: minibatches per pass (batch x unroll must divide by it)")
     multistep: str = _opt("1", "offline runs: multi-step training: K feeds the model its own prediction between "
                                "real frames every K steps of a chunk (1: teacher forcing); 'K1,K2,...' a "

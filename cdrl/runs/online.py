@@ -147,11 +147,12 @@ def learner(cfg: RunConfig) -> Learner:
                        init_online, online_step, "controller", controller_policy, model_params,
                        ("noise_std", "ascent_on"))
     dcfg = DreamConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay, model_updates=cfg.model_updates,
-                       horizon=cfg.horizon, controller=cfg.controller)
+                       horizon=cfg.horizon, controller=cfg.controller, epochs=cfg.ppo_epochs,
+                       scope=cfg.scope if cfg.controller == "real" else "controller")
     hp = DreamHParams.create(cfg.hparams(variant), ctrl_opt=OptHParams.create("adam", lr=cfg.ctrl_lr, grad_clip=100.0),
                              ascent=cfg.ascent, explore=cfg.noise_std, explore_decay=cfg.noise_decay,
                              warmup_steps=cfg.warmup_steps, gamma=cfg.gamma, lam=cfg.gae_lambda,
-                             entropy=cfg.entropy_coef)
+                             entropy=cfg.entropy_coef, clip_eps=cfg.clip_eps)
     return Learner(variant, game, env_params, dcfg, hp, init_dream, dream_step, "controller", controller_policy,
                    model_params, ("explore", "controller_on"))
 

@@ -51,7 +51,7 @@ from cdrl.training.online import Games, copy_scores, reset_games, step_games
 from cdrl.training.optim import HParams, OptHParams, init_opt_state
 from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
 
-CONTROLLERS = ("imagine", "critic", "value")
+CONTROLLERS = ("imagine", "critic", "value", "real")
 # Every combination of the three buttons (right, left, accelerate), pressed 1.0 or released 0.0.
 BUTTON_COMBOS = np.asarray(list(itertools.product((0.0, 1.0), repeat=3)), np.float32)
 CRITIC_HIDDEN = 128
@@ -68,13 +68,20 @@ class DreamConfig:
     model_updates: int = 4
     horizon: int = 15
     controller: str = "imagine"
+    epochs: int = 4  # `real`: passes of the clipped update over each chunk played
+    scope: str = "controller"  # `real`: what its gradient changes: the controller, or `all` (the core too)
 
     def __post_init__(self):
-        for name in ("num_envs", "unroll", "replay", "model_updates", "horizon"):
+        for name in ("num_envs", "unroll", "replay", "model_updates", "horizon", "epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.controller not in CONTROLLERS:
             raise ValueError(f"unknown controller objective {self.controller!r}; choose one of {CONTROLLERS}")
+        if self.scope not in ("controller", "all"):
+            raise ValueError(f"scope must be controller or all, got {self.scope!r}")
+        if self.scope == "all" and self.controller != "real":
+            raise ValueError(f"scope all is for the real controller: {self.controller!r} learns in the model's "
+                             "imagination, which must not bend to please it")
 
 
 @flax.struct.dataclass
@@ -89,15 +96,17 @@ class DreamHParams:
     warmup_steps: jax.Array  # updates before the controller's objective is on
     gamma: jax.Array  # discount of imagined rewards
     lam: jax.Array  # λ of the critic's λ-returns
-    entropy: jax.Array  # the actor's entropy bonus (critic)
+    entropy: jax.Array  # the actor's entropy bonus (critic, value, real)
+    clip_eps: jax.Array  # `real`: clip range of the probability ratio
 
     @classmethod
     def create(cls, model: HParams, ctrl_opt: OptHParams | None = None, ascent=1.0, explore=0.3,
-               explore_decay=0.999, warmup_steps=100, gamma=0.95, lam=0.95, entropy=3e-3) -> "DreamHParams":
+               explore_decay=0.999, warmup_steps=100, gamma=0.95, lam=0.95, entropy=3e-3,
+               clip_eps=0.2) -> "DreamHParams":
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         ctrl_opt = ctrl_opt if ctrl_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
         return cls(model, ctrl_opt, f32(ascent), f32(explore), f32(explore_decay), f32(warmup_steps), f32(gamma),
-                   f32(lam), f32(entropy))
+                   f32(lam), f32(entropy), f32(clip_eps))
 
 
 @flax.struct.dataclass
@@ -180,7 +189,8 @@ def _act(variant: Variant, game, cfg: DreamConfig, state: DreamState, env_params
         games, nxt, reward, stats = step_games(game, env_params, games, action, k_game, variant.arch.image_size)
         probs = (1.0 - explore) * out["action"] + explore * 0.5
         next_action = jnp.where(games.is_first[:, None], 0.0, draw_buttons(k_buttons, probs))
-        record = {"obs": obs, "next_obs": nxt, "action": action, "reward": reward, "is_first": is_first}
+        record = {"obs": obs, "next_obs": nxt, "action": action, "reward": reward, "is_first": is_first,
+                  "h": variant.features(carry)}
         scores = {"pred_reward": out["reward"], "obs_bce": pixel_bce(out["logits"], nxt)}
         return (carry, games, next_action, key), (record, {**stats, **scores})
 
@@ -358,7 +368,6 @@ def _value_objective(variant, hp, params, critic, chunk: Chunk, starts):
 
 def _controller_update(variant, cfg, state: DreamState, hp: DreamHParams, starts, key, on, chunk: Chunk):
     params = state.model.params
-    mask = variant.controller_mask(params)
 
     def losses(p, critic):
         if cfg.controller == "value":
@@ -371,15 +380,113 @@ def _controller_update(variant, cfg, state: DreamState, hp: DreamHParams, starts
 
     (total, (actor, terms)), (g_params, g_critic) = jax.value_and_grad(losses, argnums=(0, 1), has_aux=True)(
         params, state.critic)
+    return _step_controller(variant, state, hp, g_params, g_critic, total), {"controller_loss": actor, **terms}
+
+
+def _step_controller(variant, state: DreamState, hp: DreamHParams, g_params, g_critic, total,
+                     everything: bool = False) -> DreamState:
+    """One step of the controller's optimiser (on its parameters only, or with `everything`
+    on all of the model's) and of the critic's."""
+    params = state.model.params
+    mask = jax.tree.map(jnp.ones_like, params) if everything else variant.controller_mask(params)
     g_params = jax.tree.map(lambda g, m: g * m, g_params, mask)
     new, opt_state, _ = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, params, state.ctrl_opt_state,
                                        g_params, total)
     new = jax.tree.map(lambda n, o, m: jnp.where(m > 0, n, o), new, params, mask)  # only the controller moves
     critic, critic_opt, _ = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, state.critic,
                                            state.critic_opt_state, g_critic, total)
-    state = state.replace(model=state.model.replace(params=new), ctrl_opt_state=opt_state, critic=critic,
-                          critic_opt_state=critic_opt)
-    return state, {"controller_loss": actor, **terms}
+    return state.replace(model=state.model.replace(params=new), ctrl_opt_state=opt_state, critic=critic,
+                         critic_opt_state=critic_opt)
+
+
+def button_log_prob(probs: jax.Array, buttons: jax.Array) -> jax.Array:
+    """log P(`buttons`) under independent Bernoulli(`probs`), summed over the last axis."""
+    p = jnp.clip(probs, 1e-6, 1 - 1e-6)
+    return jnp.sum(buttons * jnp.log(p) + (1.0 - buttons) * jnp.log1p(-p), axis=-1)
+
+
+def real_advantages(h_values, reward, is_first, first_after, gamma, lam):
+    """The λ-returns and the mask of the decisions of a chunk played, for `real`.
+
+    The controller's output at step t (from h_t, having seen o_t and a_t) is the probability
+    of the buttons a_{t+1}, executed at t + 1 for the reward r_{t+2} (`reward[t + 1]`). So the
+    decision of step t (t = 0 .. T - 2) is scored by R_t = r_{t+2} + γ ((1 - λ) V_{t+1} +
+    λ R_{t+1}), R_{T-1} = V_{T-1}, with V_t = `h_values[t]`; no bootstrap across an episode's end
+    (the episode that a_{t+1} plays in ends with r_{t+2} when o_{t+2} starts a new one:
+    `is_first[t + 2]`, `first_after` for t + 2 = T). A decision counts only if a_{t+1} was drawn
+    from it: not when o_{t+1} starts a new episode (its buttons are then released). Returns
+    (R `[T - 1, B]`, valid `[T - 1, B]`)."""
+    first = jnp.concatenate([is_first, first_after[None]], axis=0)  # o_0 .. o_T starts an episode
+    not_done = (~first[2:]).astype(jnp.float32)
+    rets = lambda_returns(reward[1:], h_values[1:], h_values[-1], gamma, lam, not_done)
+    return rets, (~first[1:-1]).astype(jnp.float32)
+
+
+def _real_update(variant, cfg: DreamConfig, state: DreamState, hp: DreamHParams, chunk: dict, carry0, explore, on):
+    """`real`: the controller and the critic on the chunk just played, from its real rewards.
+
+    The states are the model's own h_t along the chunk, teacher-forced on the executed buttons
+    from `carry0` (the controller's parameters do not change them). The critic V(h_t) learns
+    the λ-returns of the real rewards (`real_advantages`); the controller is updated by PPO's
+    clipped surrogate on the probability it drew the executed buttons with, (1 - ε) ã + ε / 2,
+    the advantages normalised over the chunk, plus an entropy bonus on ã; `epochs` passes over
+    the chunk. With scope `controller` no gradient reaches the world model: it learns its frames
+    only, and the controller reads what it has learnt (h as recorded while acting). With scope
+    `all` the actor's and the critic's gradients reach the core and the encoder too, stepped
+    by the controller's optimiser beside the model's own updates on its frames."""
+    everything = cfg.scope == "all"
+    recorded = Chunk(obs=chunk["obs"], next_obs=chunk["next_obs"], action=chunk["action"], reward=chunk["reward"],
+                     is_first=chunk["is_first"])
+
+    def features(params):
+        if not everything:
+            return jax.lax.stop_gradient(chunk["h"])  # [T, B, H]
+
+        def body(c, x):
+            c, _ = variant.step(params, c, x)
+            return c, variant.features(c)
+
+        return jax.lax.scan(body, carry0, step_inputs(recorded))[1]
+
+    executed = jnp.concatenate([chunk["action"][1:], state.action[None]], axis=0)[:-1]  # a_{t+1}, t < T - 1
+
+    def probs_of(params, h):
+        a = variant.heads(params, variant.fc(params, h[:-1]))["action"]
+        return (1.0 - explore) * a + explore * 0.5, a
+
+    h0 = jax.lax.stop_gradient(chunk["h"])
+    old_logp = jax.lax.stop_gradient(button_log_prob(probs_of(state.model.params, h0)[0], executed))
+    rets, valid = real_advantages(critic_value(state.critic, h0), chunk["reward"], chunk["is_first"],
+                                  state.games.is_first, hp.gamma, hp.lam)
+    rets = jax.lax.stop_gradient(rets)
+    count = jnp.maximum(jnp.sum(valid), 1.0)
+    masked_mean = lambda x: jnp.sum(valid * x) / count  # noqa: E731
+
+    def losses(params, critic):
+        h = features(params)
+        values = critic_value(critic, h[:-1])
+        adv = jax.lax.stop_gradient(rets - values)
+        mean = masked_mean(adv)
+        adv = (adv - mean) / jnp.sqrt(masked_mean(jnp.square(adv - mean)) + 1e-8)
+        probs, a = probs_of(params, h)
+        ratio = jnp.exp(button_log_prob(probs, executed) - old_logp)
+        clipped = jnp.clip(ratio, 1.0 - hp.clip_eps, 1.0 + hp.clip_eps)
+        p = jnp.clip(a, 1e-6, 1 - 1e-6)
+        ent = -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
+        actor = -masked_mean(jnp.minimum(ratio * adv, clipped * adv)) - hp.entropy * masked_mean(ent)
+        critic_loss = 0.5 * masked_mean(jnp.square(values - rets))
+        terms = {"imagined_return": masked_mean(rets), "critic_loss": critic_loss, "entropy": masked_mean(ent),
+                 "clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32))}
+        return hp.ascent * on * actor + critic_loss, (actor, terms)
+
+    def epoch(state, _):
+        (total, (actor, terms)), (g_params, g_critic) = jax.value_and_grad(losses, argnums=(0, 1), has_aux=True)(
+            state.model.params, state.critic)
+        state = _step_controller(variant, state, hp, g_params, g_critic, total, everything)
+        return state, {"controller_loss": actor, **terms}
+
+    state, terms = jax.lax.scan(epoch, state, None, length=cfg.epochs)
+    return state, jax.tree.map(lambda x: x[-1], terms)
 
 
 def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, hp: DreamHParams, env_params):
@@ -392,13 +499,17 @@ def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, h
     state = state.replace(replay=_store(state.replay, chunk, jax.lax.stop_gradient(carry0)))
     scores = copy_scores(chunk["obs"], chunk["next_obs"])
     on = (step >= hp.warmup_steps).astype(jnp.float32)
+    if cfg.controller == "real":  # on the chunk just played, before the model moves (on-policy)
+        state, real_terms = _real_update(variant, cfg, state, hp, chunk, carry0, explore, on)
 
     def learn(state: DreamState, k):
-        """One model update on a chunk drawn from the buffer, then one controller update from
-        that chunk's states."""
+        """One model update on a chunk drawn from the buffer, then (but for `real`) one
+        controller update from that chunk's states."""
         k_draw, k_imagine = jax.random.split(k)
         replayed, carry = state.replay.chunk(jax.random.randint(k_draw, (), 0, state.replay.filled))
         state, model_m = _model_update(variant, state, hp, replayed, carry)
+        if cfg.controller == "real":
+            return state, (model_m, {})
         starts = _starts(variant, jax.lax.stop_gradient(state.model.params), replayed, carry)
         state, ctrl_terms = _controller_update(variant, cfg, state, hp, starts, k_imagine, on, replayed)
         return state, (model_m, ctrl_terms)
@@ -406,7 +517,7 @@ def dream_step_fn(variant: Variant, game, cfg: DreamConfig, state: DreamState, h
     state, (model_m, ctrl_m) = jax.lax.scan(learn, state, jax.random.split(k_model, cfg.model_updates))
     state = state.replace(model=state.model.replace(step=state.model.step + 1))
     last = jax.tree.map(lambda x: x[-1], model_m)
-    ctrl_terms = jax.tree.map(jnp.mean, ctrl_m)
+    ctrl_terms = real_terms if cfg.controller == "real" else jax.tree.map(jnp.mean, ctrl_m)
     metrics = {
         "loss": last["loss"],
         # The model's scores on the chunk it acted in, before learning from it (obs_bce beside
