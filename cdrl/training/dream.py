@@ -19,18 +19,24 @@ do (Dreamer's train ratio and imagination), keeping the thesis's model and heads
      model imagines `horizon` steps fed its own predictions and the controller's
      actions (for closed loop − the error input is then zero: `FinalProposal.imagine_step`),
      and the controller (the FC layer's action-code columns and D_a, `controller_mask`) is
-     updated with its own optimiser (Adam) on one of two objectives:
+     updated with its own optimiser (Adam) on one of three objectives:
      - `imagine`: gradient ascent on the discounted predicted reward of the imagined steps,
        the action ã fed in as it is (deterministic, differentiated through the model);
      - `critic`: an actor-critic in imagination (DreamerV3's recipe for discrete actions):
        buttons drawn from Bernoulli(ã), a critic V(h) on the core's output trained on the
        imagined λ-returns, the actor by REINFORCE with the returns normalised by their 5-95 %
-       range (at least 1) and an entropy bonus.
+       range (at least 1) and an entropy bonus;
+     - `value`: the buttons' values one model step ahead, learnt from real returns
+       (`_value_objective`).
    The controller's objective is off for `warmup_steps` updates, while the model learns alone
    (the critic learns from the start).
 
-The model never sees a gradient of the controller's objective, so it cannot "predict more
-reward" to please the controller (what scope `all` of the thesis's ascent does).
+`real` learns the controller without imagination: once per chunk, before the model's updates,
+an actor-critic on the model's states along the chunk just played, from its real rewards
+(`_real_update`; with scope `all` its gradient shapes the core too).
+
+In imagination the model never sees a gradient of the controller's objective, so it cannot
+"predict more reward" to please the controller (what scope `all` of the thesis's ascent does).
 """
 from __future__ import annotations
 
@@ -49,6 +55,7 @@ from cdrl.models import nets
 from cdrl.models.base import StepInput, Variant
 from cdrl.training.online import Games, copy_scores, reset_games, step_games
 from cdrl.training.optim import HParams, OptHParams, init_opt_state
+from cdrl.training.ppo import clipped_surrogate
 from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
 
 CONTROLLERS = ("imagine", "critic", "value", "real")
@@ -303,9 +310,8 @@ def _controller_objective(variant, cfg, hp, params, critic, starts, key):
     critic_loss = 0.5 * jnp.mean(jnp.square(before - rets))
     scale = jnp.maximum(1.0, jnp.percentile(rets, 95) - jnp.percentile(rets, 5))
     adv = jax.lax.stop_gradient((rets - before) / scale)
-    p = jnp.clip(traj["probs"], 1e-6, 1 - 1e-6)
-    logp = jnp.sum(traj["buttons"] * jnp.log(p) + (1 - traj["buttons"]) * jnp.log1p(-p), axis=-1)
-    ent = -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
+    logp = button_log_prob(traj["probs"], traj["buttons"])
+    ent = button_entropy(traj["probs"])
     actor_loss = -jnp.mean(logp * adv) - hp.entropy * jnp.mean(ent)
     return actor_loss, (critic_loss, {"imagined_return": jnp.mean(rets[0]), "critic_loss": critic_loss,
                                       "entropy": jnp.mean(ent)})
@@ -344,8 +350,7 @@ def _value_objective(variant, hp, params, critic, chunk: Chunk, starts):
         after_one_step(variant, fixed, carry, frame, jnp.broadcast_to(a, probs.shape)))))(BUTTON_COMBOS)
     q_all = jax.lax.stop_gradient(q_all)
     expected = jnp.sum(jnp.exp(button_log_probs(probs)) * q_all, axis=0)
-    p = jnp.clip(probs, 1e-6, 1 - 1e-6)
-    ent = -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
+    ent = button_entropy(probs)
     # E[Q] + α H: the factorised policy closest (in KL) to softmax(Q / α) over the combinations;
     # α (`entropy`) is in the units of the return
     actor_loss = -jnp.mean(expected) - hp.entropy * jnp.mean(ent)
@@ -397,6 +402,12 @@ def _step_controller(variant, state: DreamState, hp: DreamHParams, g_params, g_c
                                            state.critic_opt_state, g_critic, total)
     return state.replace(model=state.model.replace(params=new), ctrl_opt_state=opt_state, critic=critic,
                          critic_opt_state=critic_opt)
+
+
+def button_entropy(probs: jax.Array) -> jax.Array:
+    """The entropy of independent Bernoulli(`probs`) buttons, summed over the last axis."""
+    p = jnp.clip(probs, 1e-6, 1 - 1e-6)
+    return -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
 
 
 def button_log_prob(probs: jax.Array, buttons: jax.Array) -> jax.Array:
@@ -470,10 +481,8 @@ def _real_update(variant, cfg: DreamConfig, state: DreamState, hp: DreamHParams,
         adv = (adv - mean) / jnp.sqrt(masked_mean(jnp.square(adv - mean)) + 1e-8)
         probs, a = probs_of(params, h)
         ratio = jnp.exp(button_log_prob(probs, executed) - old_logp)
-        clipped = jnp.clip(ratio, 1.0 - hp.clip_eps, 1.0 + hp.clip_eps)
-        p = jnp.clip(a, 1e-6, 1 - 1e-6)
-        ent = -jnp.sum(p * jnp.log(p) + (1 - p) * jnp.log1p(-p), axis=-1)
-        actor = -masked_mean(jnp.minimum(ratio * adv, clipped * adv)) - hp.entropy * masked_mean(ent)
+        ent = button_entropy(a)
+        actor = -masked_mean(clipped_surrogate(ratio, adv, hp.clip_eps)) - hp.entropy * masked_mean(ent)
         critic_loss = 0.5 * masked_mean(jnp.square(values - rets))
         terms = {"imagined_return": masked_mean(rets), "critic_loss": critic_loss, "entropy": masked_mean(ent),
                  "clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32))}

@@ -238,13 +238,18 @@ def gae(rewards, values, dones, last_value, gamma, gae_lambda):
 # --------------------------------------------------------------------------- the loss and the updates
 
 
+def clipped_surrogate(ratio, advantages, clip_eps):
+    """PPO's clipped surrogate per sample, min(ρ A, clip(ρ, 1 - ε, 1 + ε) A), to be maximised."""
+    return jnp.minimum(ratio * advantages, jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages)
+
+
 def clipped_loss(new_log_prob, old_log_prob, advantages, new_value, old_value, returns, ent, hp: PPOHParams):
     """PPO's loss of one minibatch from its per-sample numbers. The advantages are normalised here
     (mean 0, std 1 over the minibatch). Returns (loss, terms)."""
     adv = (advantages - jnp.mean(advantages)) / (jnp.std(advantages) + 1e-8)
     log_ratio = new_log_prob - old_log_prob
     ratio = jnp.exp(log_ratio)
-    policy_loss = -jnp.mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp.clip_eps, 1.0 + hp.clip_eps) * adv))
+    policy_loss = -jnp.mean(clipped_surrogate(ratio, adv, hp.clip_eps))
     v_clipped = old_value + jnp.clip(new_value - old_value, -hp.clip_eps, hp.clip_eps)
     value_loss = 0.5 * jnp.mean(jnp.maximum(jnp.square(new_value - returns), jnp.square(v_clipped - returns)))
     mean_entropy = jnp.mean(ent)
