@@ -14,6 +14,8 @@ greedy buttons. The reference policies play the same games once: they do not lea
   critic-open   reward_prediction (open loop on observations), as `critic`: does closed loop − help?
   real-pre      on `critic-pre`'s world model, an actor-critic on the real states of the chunks played,
                 from their real rewards (`--controller real`; exploration 0.05, no warm-up)
+  real-pre-all  the same with scope all: its gradient shapes the world model's core and encoder too
+  real-all      `real-pre-all` without the pre-training (the model from scratch on Adam, as `critic`)
   critic-pre    `critic` on a world model learnt offline first (`--controller none`, on the data
                 the run collects: 60 episodes of uniform-random play) and trained on online
                 (`--init-from`); its game frames count the pre-training data's
@@ -58,6 +60,8 @@ CONFIGS: dict[str, dict] = {
                  "pretrain": {"variant": "final_proposal", "controller": "none"}},
     "real-pre-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
                      "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none"}},
+    "real-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
+                 "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
     "ppo": {"variant": "ppo"},
     "ppo-10x": {"variant": "ppo", "frames_factor": 10},
 }
