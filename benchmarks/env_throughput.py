@@ -10,6 +10,17 @@ Measures
     data collection uses several cores); the figure is the sum of their rates;
   * the gymnasium wrapper stepping one game (``SlitherEnv.step``).
 
+With ``--devices N`` the one process holds N CPU devices and each batch of games is spread
+over them (the batch axis sharded, as ``cdrl collect --devices N`` does): XLA runs each
+device's block on its own core, where one device's program keeps the cores busy only part
+of the time.
+
+With ``--baseline DIR`` (a checkout of another commit, e.g. ``git worktree add /tmp/base
+HEAD~1``), the game of DIR and this tree's game run the same rollout at the chosen batch sizes in
+two processes, one timing window at a time, alternating: ``speedup_batch{B}`` is the median
+[min, max] of the per-repeat ratios (this tree / DIR), so both commits are measured in one run,
+under the same load.
+
 ``--single-thread`` keeps XLA from splitting single operations over cores (which
 costs more than it gains when the cores are busy; with ``--procs 2`` it gives each
 process its own core).
@@ -34,7 +45,7 @@ Prints one line per figure, then one JSON line with all figures (``--out FILE``
 also writes that line to FILE; committed results go to
 benchmarks/results/env_throughput.json).
 
-    python benchmarks/env_throughput.py [--quick] [--procs 2] [--single-thread] [--out FILE]
+    python benchmarks/env_throughput.py [--quick] [--procs 2] [--single-thread] [--devices N] [--baseline DIR] [--out FILE]
 """
 
 from __future__ import annotations
@@ -61,6 +72,11 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--repeats", type=int, default=None, help="timed windows per figure (default 5; --quick: 3)")
     ap.add_argument("--out", default=None, help="also write the final JSON line to this file")
     ap.add_argument("--procs", type=int, default=1, help="also run this many processes at once")
+    ap.add_argument("--devices", type=int, default=1,
+                    help="spread each batch of games over this many CPU devices of the one process (its batch "
+                         "sizes multiples of it; the baseline of --baseline runs on one)")
+    ap.add_argument("--baseline", default=None, metavar="DIR",
+                    help="also time the game of another checkout, alternating windows with this tree's")
     ap.add_argument("--policy", default="uniform", choices=["uniform", "behaviour"])
     ap.add_argument("--single-thread", action="store_true",
                     help="XLA_FLAGS=--xla_cpu_multi_thread_eigen=false (one core per process)")
@@ -103,11 +119,18 @@ def _make_rollout(policy_name: str, steps: int):
 class _Rollout:
     """The jitted rollout at one batch size, compiled and warmed up, games carried on."""
 
-    def __init__(self, policy_name: str, steps: int, batch: int, seed: int = 0):
+    def __init__(self, policy_name: str, steps: int, batch: int, seed: int = 0, devices: int = 1):
         import jax
 
         start, self.rollout = _make_rollout(policy_name, steps)
-        self.carry = start(jax.random.split(jax.random.PRNGKey(seed), batch))
+        keys = jax.random.split(jax.random.PRNGKey(seed), batch)
+        if devices > 1:  # the games' batch axis over the devices (as `cdrl collect --devices`)
+            import numpy as np
+            from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+            mesh = Mesh(np.array(jax.local_devices()[:devices]), ("games",))
+            keys = jax.device_put(keys, NamedSharding(mesh, PartitionSpec("games")))
+        self.carry = start(keys)
         self.obs_per_call = batch * steps
         t0 = time.perf_counter()
         self._call()
@@ -157,6 +180,53 @@ def _measure_procs(procs: int, policy_name: str, steps: int, batch: int, seconds
     return [sum(rates) for rates in zip(*results)]
 
 
+def _paired_worker(root, policy_name, steps, batch, devices, conn):
+    """Serves timing windows of one checkout's game: answers each ``seconds`` received on
+    ``conn`` with the window's observations/s, until it receives None."""
+    sys.path.insert(0, root)
+    _use_cpu_devices(devices)
+    import envs
+
+    if not os.path.abspath(envs.__file__).startswith(os.path.abspath(root) + os.sep):
+        raise RuntimeError(f"the game imported from {envs.__file__}, not from {root}")
+    r = _Rollout(policy_name, steps, batch, devices=devices)
+    conn.send(r.first_call_s)
+    while (seconds := conn.recv()) is not None:
+        conn.send(r.window(seconds)["obs_per_s"])
+
+
+def _measure_against(baseline: str, policy_name: str, steps: int, batch: int, seconds: float,
+                     repeats: int, devices: int) -> tuple[list[float], list[float]]:
+    """Observations/s per repeat of (this tree's game on ``devices`` devices, the baseline
+    checkout's game on one), their windows alternating (which goes first alternates too)."""
+    ctx = mp.get_context("spawn")
+    pipes, workers = [], []
+    for root, count in ((ROOT, devices), (os.path.abspath(baseline), 1)):
+        mine, theirs = ctx.Pipe()
+        w = ctx.Process(target=_paired_worker, args=(root, policy_name, steps, batch, count, theirs))
+        w.start()
+        pipes.append(mine)
+        workers.append(w)
+        mine.recv()  # compiled and warm; the other compiles after, on an idle machine
+    rates: list[list[float]] = [[], []]
+    for i in range(repeats):
+        for j in ((0, 1) if i % 2 == 0 else (1, 0)):
+            pipes[j].send(seconds)
+            rates[j].append(pipes[j].recv())
+    for p, w in zip(pipes, workers):
+        p.send(None)
+        w.join()
+    return rates[0], rates[1]
+
+
+def _use_cpu_devices(count: int) -> None:
+    """Ask JAX (not started yet) for ``count`` CPU devices in this process."""
+    if count > 1:
+        import jax
+
+        jax.config.update("jax_num_cpu_devices", count)
+
+
 def _measure_gym(seconds: float, repeats: int) -> list[float]:
     import numpy as np
 
@@ -186,8 +256,9 @@ TARGET_OBS_PER_S = 20_000.0  # README "Performance"
 def _spread(values: list[float]) -> dict:
     import statistics
 
-    return {"repeats": [round(v, 1) for v in values], "min": round(min(values), 1),
-            "median": round(statistics.median(values), 1), "max": round(max(values), 1)}
+    d = 1 if max(values) >= 100 else 3  # rates to 0.1 obs/s, ratios to 0.001
+    return {"repeats": [round(v, d) for v in values], "min": round(min(values), d),
+            "median": round(statistics.median(values), d), "max": round(max(values), d)}
 
 
 def main() -> None:
@@ -196,6 +267,7 @@ def main() -> None:
     if args.single_thread:
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
     sys.path.insert(0, ROOT)
+    _use_cpu_devices(args.devices)
     batch_sizes = args.batch_sizes or ([1, 16, 64] if args.quick else [1, 16, 64, 256])
     seconds = args.seconds or (1.0 if args.quick else 3.0)
     repeats = args.repeats or (3 if args.quick else 5)
@@ -209,7 +281,7 @@ def main() -> None:
 
     rollouts = {}
     for b in batch_sizes:
-        rollouts[b] = _Rollout(args.policy, args.steps, b)
+        rollouts[b] = _Rollout(args.policy, args.steps, b, devices=args.devices)
         print(f"jax vmap batch {b:4d}: first call {rollouts[b].first_call_s:.1f} s", flush=True)
     windows: dict[int, list[dict]] = {b: [] for b in batch_sizes}
     for _ in range(repeats):
@@ -233,6 +305,16 @@ def main() -> None:
             w = record(f"jax_batch{b}_x{args.procs}procs_obs_per_s", rates)
             print(f"jax vmap batch {b:4d} x {args.procs} processes: {w['median']:10.0f} obs/s "
                   f"[{w['min']:.0f}, {w['max']:.0f}]", flush=True)
+    if args.baseline:
+        results["baseline"] = os.path.abspath(args.baseline)
+        for b in batch_sizes:
+            mine, base = _measure_against(args.baseline, args.policy, args.steps, b, seconds, repeats, args.devices)
+            record(f"paired_batch{b}_obs_per_s", mine)
+            record(f"baseline_batch{b}_obs_per_s", base)
+            w = record(f"speedup_batch{b}", [m / max(o, 1e-9) for m, o in zip(mine, base)])
+            print(f"batch {b:4d}, this tree / {args.baseline}: {w['median']:.2f}x [{w['min']:.2f}, {w['max']:.2f}] "
+                  f"({results[f'paired_batch{b}_obs_per_s']:.0f} against {results[f'baseline_batch{b}_obs_per_s']:.0f} obs/s)",
+                  flush=True)
     w = record("gym_single_obs_per_s", _measure_gym(seconds, repeats))
     print(f"gymnasium SlitherEnv.step: {w['median']:10.0f} obs/s [{w['min']:.0f}, {w['max']:.0f}]", flush=True)
     wall_keys = [k for k in spread if k.startswith("jax_") and k.endswith("_obs_per_s")]
@@ -253,6 +335,7 @@ def main() -> None:
     results["load_avg_end"] = round(os.getloadavg()[0], 2)
     results["load_avg_1min"] = results["load_avg_end"]
     results["steps_per_call"] = args.steps
+    results["devices"] = args.devices
     warn_if_busy(results, results["load_avg_start"], results["load_avg_end"])
     if best:
         print(f"best: {best} median {spread[best]['median']:.0f} obs/s [min {spread[best]['min']:.0f}, max "

@@ -193,12 +193,27 @@ def _cmd_plot(args) -> int:
     return 0
 
 
+def _use_cpu_devices(count: int) -> None:
+    """Ask for ``count`` devices of JAX's CPU backend in this process, where it has fewer and
+    has not started yet (a GPU or TPU backend is left as it is)."""
+    import jax
+
+    if count > 1 and jax.config.jax_num_cpu_devices < count:
+        try:
+            jax.config.update("jax_num_cpu_devices", count)
+        except RuntimeError:  # JAX already started: games_sharding names the devices there are
+            pass
+
+
 def _cmd_collect(args) -> int:
     from cdrl.data import gymrec
     from cdrl.data.collect import collect
 
     try:
         if args.env:
+            for name in ("batch_size", "devices"):
+                if getattr(args, name) is not None:
+                    raise ValueError(f"--{name.replace('_', '-')} is for the built-in game (no --env)")
             gymrec.record_env(args.env, Path(args.out), args.episodes, size=args.obs_size, crop=args.crop,
                               obs=args.obs or "image", policy=args.policy or "uniform", seed=args.seed,
                               max_steps=args.episode_steps, env_kwargs=gymrec.parse_env_kwargs(args.env_kwargs))
@@ -206,8 +221,11 @@ def _cmd_collect(args) -> int:
             for name in ("obs", "crop", "env_kwargs"):
                 if getattr(args, name):
                     raise ValueError(f"--{name.replace('_', '-')} is for a gymnasium game (--env ID)")
+            devices = 1 if args.devices is None else args.devices
+            _use_cpu_devices(devices)
             collect(Path(args.out), args.episodes, policy=args.policy or "behaviour", seed=args.seed,
-                    max_steps=args.episode_steps, obs_size=args.obs_size)
+                    max_steps=args.episode_steps, obs_size=args.obs_size,
+                    batch_size=16 if args.batch_size is None else args.batch_size, devices=devices)
     except USER_ERRORS as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
         return 2
@@ -327,6 +345,12 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--episode-steps", type=int, default=500, help="step limit of an episode (default: 500)")
     col.add_argument("--obs-size", type=int, default=150,
                      help="side of the square observation: 64 for the small preset, 16 for tiny (default: 150)")
+    col.add_argument("--batch-size", type=int, default=None,
+                     help="built-in game: episodes simulated together as one vmapped program (default: 16)")
+    col.add_argument("--devices", type=int, default=None,
+                     help="built-in game: spread each batch of episodes over this many devices of this process (0: "
+                          "all; on the CPU: host devices, made as many as asked, one per core is best; the batch "
+                          "size a multiple of it); the episodes are the same for any count (default: 1)")
     col.add_argument("--env", metavar="ID", default=None,
                      help="record this registered gymnasium game instead of the built-in one, e.g. CartPole-v1, or "
                           "ALE/Pong-v5 with ale-py installed; MODULE:ID imports MODULE first, for a game that a "

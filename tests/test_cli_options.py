@@ -41,7 +41,8 @@ ACCEPTED = {
     ("gae_lambda", "0"),  # one-step advantages
     ("obs_mean", "0"), ("obs_mean", "-1"),  # any finite brightness offset of the encoder's input
 }
-COLLECT_ACCEPTED = {("--seed", "0"), ("--crop", 0, "0"), ("--crop", 1, "0")}  # seed 0; a crop at the frame's edge
+# seed 0; a crop at the frame's edge; --devices 0 (every device)
+COLLECT_ACCEPTED = {("--seed", "0"), ("--crop", 0, "0"), ("--crop", 1, "0"), ("--devices", "0")}
 
 
 class Accepted(Exception):
@@ -117,7 +118,8 @@ def test_eval_options_are_refused_by_name(stubbed, capsys, option):
         _check(["eval", "R", option, value], option[2:], False, stubbed, capsys)
 
 
-@pytest.mark.parametrize("option", ["--episodes", "--seed", "--episode-steps", "--obs-size"])
+@pytest.mark.parametrize("option", ["--episodes", "--seed", "--episode-steps", "--obs-size", "--batch-size",
+                                    "--devices"])
 def test_collect_options_are_accepted_by_design_or_refused_by_name(stubbed, capsys, option):
     for value in VALUES:
         _check(["collect", "D", option, value], option, (option, value) in COLLECT_ACCEPTED, stubbed, capsys)
@@ -147,7 +149,8 @@ def test_the_sweep_of_values_covers_every_numeric_option_of_every_command():
     assert numeric["lr-search"] == (run_options - {"--lr", "--steps", "--diverge-threshold"}
                                     | {"--probe-steps", "--threshold", "--candidates"})
     assert numeric["eval"] == {"--episodes", "--horizon", "--context"}
-    assert numeric["collect"] == {"--episodes", "--seed", "--episode-steps", "--obs-size", "--crop"}
+    assert numeric["collect"] == {"--episodes", "--seed", "--episode-steps", "--obs-size", "--crop", "--batch-size",
+                                  "--devices"}
     assert numeric["plot"] == numeric["variants"] == set()
     assert {name for name, _ in ACCEPTED} <= set(NUMERIC)
 

@@ -175,8 +175,21 @@ for chunk in chunks:
                                            for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(two.params))),
                          "carry_sharded": [str(x.sharding.spec) for x in jax.tree.leaves(two.carry)],
                          "params_replicated": all(x.sharding.is_fully_replicated for x in jax.tree.leaves(two.params))})
+# the built-in game's collection with its games over the two devices
+from cdrl.data.collect import _rollout_fn, collect, games_sharding
+from envs.slither import canonical_params
+for devices in (1, 2):
+    collect(out / f"collect{devices}", 4, policy="uniform", seed=3, max_steps=12, batch_size=4, chunk_steps=8,
+            progress=False, compress=False, devices=devices)
+result["collect"] = {d: {p.name: p.read_bytes().hex() for p in sorted((out / f"collect{d}").glob("episode_*"))}
+                     for d in (1, 2)}
+start, _ = _rollout_fn((), "uniform", 8)
+carry = start(jax.device_put(jax.random.split(jax.random.PRNGKey(0), 4), games_sharding(2, 4)),
+              canonical_params())
+result["collect_sharded"] = sorted({len(x.sharding.device_set) for x in jax.tree.leaves(carry)})
 errors = {}
-for name, make in {"batch": lambda: DataParallel.create(2, 3), "devices": lambda: DataParallel.create(4, 4)}.items():
+for name, make in {"batch": lambda: DataParallel.create(2, 3), "devices": lambda: DataParallel.create(4, 4),
+                   "games_batch": lambda: games_sharding(2, 3), "games_devices": lambda: games_sharding(3, 3)}.items():
     try:
         make()
     except ValueError as exc:
@@ -189,8 +202,9 @@ print("RESULT " + json.dumps(result))
 def test_sharded_sweep_and_data_parallel_step_equal_one_device(tmp_path):
     """Two host devices: a sweep whose config axis is sharded over them (three configurations,
     padded to four; one diverges; a two-stage variant too) trains exactly what the vmapped
-    one-device sweep trains, and the data-parallel step (B split over the devices, gradients
-    all-reduced) equals the one-device step."""
+    one-device sweep trains, the data-parallel step (B split over the devices, gradients
+    all-reduced) equals the one-device step, and the game's collection with its games split
+    over them writes the one-device data set byte for byte."""
     env = {**os.environ, "XLA_FLAGS": f"{_flags_without_device_count()} --xla_force_host_platform_device_count=2",
            "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", TWO_DEVICES, str(tmp_path)], env=env, capture_output=True,
@@ -213,6 +227,11 @@ def test_sharded_sweep_and_data_parallel_step_equal_one_device(tmp_path):
     assert result["dp"][0]["loss"] != result["dp"][-1]["loss"]  # it trained
     assert "batch 3 does not split over 2 devices" in result["errors"]["batch"]
     assert "devices=4, but only 2 cpu device(s)" in result["errors"]["devices"]
+    # the game's collection: each episode's file the same bytes with its games on two devices
+    assert len(result["collect"]["1"]) == 4 and result["collect"]["2"] == result["collect"]["1"]
+    assert result["collect_sharded"] == [2]
+    assert "--batch-size 3 does not split over 2 devices" in result["errors"]["games_batch"]
+    assert "--devices 3: this process has 2 cpu device(s)" in result["errors"]["games_devices"]
 
 
 # ---- two processes

@@ -62,6 +62,33 @@ def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size:
     return jax.jit(jax.vmap(start, in_axes=(0, None))), jax.jit(run)
 
 
+def games_sharding(devices: int, batch_size: int):
+    """The layout of a batch of ``batch_size`` games over this process's first ``devices``
+    devices (0: all of them): a ``NamedSharding`` splitting the batch axis (mesh axis ``games``), or None for one
+    device. The games are independent, so the sharded program runs each device's block with
+    no communication, and XLA's CPU backend runs the blocks of its host devices on separate
+    cores (``jax.config.update("jax_num_cpu_devices", N)`` before JAX starts, or
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=N``). Raises ``ValueError`` naming
+    the option (as ``cdrl collect`` spells it) when there are fewer devices or the batch does
+    not split evenly."""
+    import jax
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    local = jax.local_devices()
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ValueError(f"--batch-size must be an integer >= 1, got {batch_size!r}")
+    if isinstance(devices, bool) or not isinstance(devices, (int, np.integer)) or not 0 <= devices <= len(local):
+        raise ValueError(f"--devices {devices!r}: this process has {len(local)} {local[0].platform} device(s); use 1 "
+                         f"to {len(local)}, or 0 for all (more CPU devices: jax_num_cpu_devices or "
+                         f"--xla_force_host_platform_device_count before JAX starts)")
+    devices = devices or len(local)
+    if batch_size % devices:
+        raise ValueError(f"--batch-size {batch_size} does not split over {devices} devices; use a multiple of {devices}")
+    if devices == 1:
+        return None
+    return NamedSharding(Mesh(np.array(local[:devices]), ("games",)), PartitionSpec("games"))
+
+
 def collect(
     out_dir: str | os.PathLike,
     num_episodes: int,
@@ -76,6 +103,7 @@ def collect(
     compress: bool = True,
     progress: bool | None = None,
     obs_size: int = 150,
+    devices: int = 1,
 ) -> dict:
     """Collects ``num_episodes`` Slither episodes into ``out_dir`` (or resumes).
 
@@ -103,6 +131,8 @@ def collect(
       progress: show a tqdm bar (None = only on a terminal).
       obs_size: side of the stored observations; the game's 150 x 150 observation is
         area-resized to it (for the smaller architecture presets).
+      devices: local devices the batch's games are spread over (:func:`games_sharding`;
+        0: all); the episodes are the same for any count.
     Returns:
       The manifest (as written to ``out_dir/manifest.json``).
     Raises:
@@ -116,6 +146,7 @@ def collect(
 
     check_collection(num_episodes, max_steps, obs_size, seed, largest=OBS_SIZE)
     get_policy(policy)
+    sharding = games_sharding(devices, batch_size)
     if isinstance(env_params, dict):
         params = SlitherParams(**env_params)
     else:
@@ -136,13 +167,13 @@ def collect(
     def fill(writer):
         if writer.missing:
             _simulate(writer, params, game_kwargs, policy, int(seed), int(max_steps), int(batch_size),
-                      int(chunk_steps), int(obs_size), compress, progress)
+                      int(chunk_steps), int(obs_size), compress, progress, sharding)
 
     return write_set(out_dir, config, fill)
 
 
 def _simulate(writer: Writer, params, game_kwargs: dict, policy: str, seed: int, max_steps: int, batch_size: int,
-              chunk_steps: int, obs_size: int, compress: bool, progress: bool | None) -> None:
+              chunk_steps: int, obs_size: int, compress: bool, progress: bool | None, sharding=None) -> None:
     """Runs and writes the episodes ``writer`` is missing (the body of :func:`collect`)."""
     import jax
     from tqdm.auto import tqdm
@@ -165,7 +196,8 @@ def _simulate(writer: Writer, params, game_kwargs: dict, policy: str, seed: int,
         for b in range(0, len(missing), batch_size):
             batch = missing[b:b + batch_size]
             padded = batch + [batch[-1]] * (batch_size - len(batch))
-            carry = start(episode_keys(np.asarray(padded, np.uint32)), params)
+            keys = episode_keys(np.asarray(padded, np.uint32))
+            carry = start(keys if sharding is None else jax.device_put(keys, sharding), params)
             pieces = []
             steps = 0
             while steps <= max_steps:
