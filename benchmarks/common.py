@@ -41,3 +41,12 @@ def warn_if_busy(result: dict, load_avg_start: float, load_avg_end: float) -> No
     if busy > 0.5 * cpus:
         result["warning"] = f"machine busy (load average up to {busy:.1f} on {cpus} CPUs): wall-clock figures are unreliable"
         print("warning: " + result["warning"], file=sys.stderr, flush=True)
+
+
+def recv_or_fail(pipe, proc):
+    """The next message from a worker process on `pipe`; a `RuntimeError` naming its exit code
+    if the worker ends first (a benchmark would otherwise wait for it forever)."""
+    while not pipe.poll(1.0):
+        if not proc.is_alive():
+            raise RuntimeError(f"a benchmark worker ended with exit code {proc.exitcode} (its traceback is above)")
+    return pipe.recv()

@@ -57,7 +57,7 @@ import os
 import sys
 import time
 
-from common import warn_if_busy
+from common import recv_or_fail, warn_if_busy
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -207,12 +207,12 @@ def _measure_against(baseline: str, policy_name: str, steps: int, batch: int, se
         w.start()
         pipes.append(mine)
         workers.append(w)
-        mine.recv()  # compiled and warm; the other compiles after, on an idle machine
+        recv_or_fail(mine, w)  # compiled and warm; the other compiles after, on an idle machine
     rates: list[list[float]] = [[], []]
     for i in range(repeats):
         for j in ((0, 1) if i % 2 == 0 else (1, 0)):
             pipes[j].send(seconds)
-            rates[j].append(pipes[j].recv())
+            rates[j].append(recv_or_fail(pipes[j], workers[j]))
     for p, w in zip(pipes, workers):
         p.send(None)
         w.join()

@@ -14,11 +14,17 @@ apart; evaluations excluded) and frames at which the ratio first falls below 1.0
 Rows (`--rows`, any subset, run one after another in this process):
   small-thesis       small preset, the thesis's recipe (SGD lr 0.1, momentum 0.9, B 1, raw input)
   small-fast         small preset, the `fast` recipe (cdrl's best)
+  small-fast-warm    small-fast in a new process whose train step is already in JAX's persistent
+                     compilation cache (`--compile-cache DIR`, default a fresh temporary one, filled
+                     first by another process): what a second run of the same configuration
+                     pays, as `cdrl train` with its cache does
   small-fast-torch   the same recipe, weights and chunks in the eager PyTorch reference
                      (benchmarks/torch_reference.py), evaluated by cdrl's evaluation
   thesis-fast        thesis preset (150 x 150, LSTM 512), the `fast` recipe
 
     .venv/bin/python benchmarks/time_to_quality.py --rows small-fast small-fast-torch --cap 600
+    .venv/bin/python benchmarks/time_to_quality.py --rows small-fast small-fast-warm small-fast-torch \
+        --cap 60                                                # to 1: cold, warm, PyTorch
     .venv/bin/python benchmarks/time_to_quality.py --quick     # seconds: does it run?
 
 One JSON line at the end; `--out FILE` also writes it to FILE.
@@ -26,6 +32,7 @@ One JSON line at the end; `--out FILE` also writes it to FILE.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import sys
@@ -47,6 +54,7 @@ from common import emit, warn_if_busy
 ROWS = {
     "small-thesis": dict(preset="small", recipe="thesis", framework="cdrl"),
     "small-fast": dict(preset="small", recipe="fast", framework="cdrl"),
+    "small-fast-warm": dict(preset="small", recipe="fast", framework="cdrl", compile_cache="warm"),
     "small-fast-torch": dict(preset="small", recipe="fast", framework="torch"),
     "thesis-fast": dict(preset="thesis", recipe="fast", framework="cdrl"),
 }
@@ -70,6 +78,11 @@ def _parse(argv):
     p.add_argument("--cache", default="runs/data-cache", help="data set cache (default: runs/data-cache)")
     p.add_argument("--torch-threads", type=int, default=0, help="torch threads (default: all cores)")
     p.add_argument("--quick", action="store_true", help="tiny caps and few episodes: a smoke run")
+    p.add_argument("--compile-cache", default=None, metavar="DIR",
+                   help="JAX's persistent compilation cache of this process, and of the small-fast-warm row's "
+                        "processes (default: none in this process; a fresh temporary one for that row)")
+    p.add_argument("--prime", action="store_true",
+                   help="only compile each row's train step (one step) into --compile-cache, then exit")
     p.add_argument("--out", default=None, help="also write the JSON line to this file")
     return p.parse_args(argv)
 
@@ -128,8 +141,46 @@ class _Torch:
         return jax.tree.map(np.asarray, self.tr.params_as_cdrl(self.model))
 
 
+def _use_compile_cache(directory) -> None:
+    """JAX's persistent compilation cache in `directory`, every program kept (as the CLI's)."""
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def run_warm_row(name: str, args, cap: float) -> dict:
+    """`name`'s cdrl row in a new process after another process compiled its train step into the
+    persistent cache: the row's compile seconds are then a cache read."""
+    import subprocess
+    import tempfile
+
+    base = name.removesuffix("-warm")
+    cache = args.compile_cache or tempfile.mkdtemp(prefix="cdrl-ttq-cache-")
+    common_args = [sys.executable, str(Path(__file__).resolve()), "--rows", base, "--compile-cache", cache,
+                   "--episodes", str(args.episodes), "--episode-steps", str(args.episode_steps), "--level", args.level,
+                   "--eval-every", str(args.eval_every), "--eval-episodes", str(args.eval_episodes),
+                   "--seed", str(args.seed), "--cache", args.cache, "--caps", f"{base}={cap}"]
+    subprocess.run(common_args + ["--prime"], check=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "row.json"
+        subprocess.run(common_args + ["--out", str(out)], check=True)
+        row = json.loads(out.read_text())["rows"][0]
+    return {**row, "row": name, "compile_cache": cache}
+
+
+def prime_row(name: str, args) -> None:
+    """One train step of `name`'s cdrl row: its program compiled into the persistent cache."""
+    cfg = _config(ROWS[name], args)
+    train_eps, _ = load_episodes(cfg, Path(args.cache))
+    variant = make_variant(cfg.variant, cfg.arch)
+    trainer = _Cdrl(cfg, variant, variant.init(jax.random.PRNGKey(cfg.seed)))
+    trainer.step(ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size, seed=cfg.seed).next_chunk())
+
+
 def run_row(name: str, args, cap: float) -> dict:
     spec = ROWS[name]
+    if spec.get("compile_cache") == "warm":
+        return run_warm_row(name, args, cap)
     cfg = _config(spec, args)
     cache = Path(args.cache)
     train_eps, test_eps = load_episodes(cfg, cache)
@@ -198,6 +249,12 @@ def main(argv=None) -> int:
     if args.quick:
         caps = {name: 5.0 for name in args.rows}
         args.episodes, args.episode_steps, args.eval_every = 8, 40, 2
+    if args.compile_cache:
+        _use_compile_cache(args.compile_cache)
+    if args.prime:
+        for name in args.rows:
+            prime_row(name, args)
+        return 0
     if any(ROWS[r]["framework"] == "torch" for r in args.rows):
         import torch
 
@@ -211,10 +268,12 @@ def main(argv=None) -> int:
     result["load_avg_end"] = os.getloadavg()[0]
     warn_if_busy(result, result["load_avg_start"], result["load_avg_end"])
     rows = {r["row"]: r for r in result["rows"]}
-    if "small-fast" in rows and "small-fast-torch" in rows:
-        a, b = rows["small-fast"].get("to_1"), rows["small-fast-torch"].get("to_1")
-        if a.get("reached", True) and b.get("reached", True):
-            result["cdrl_over_torch_seconds_to_1"] = a["seconds"] / b["seconds"]
+    for mine, key in (("small-fast", "cdrl_over_torch_seconds_to_1"),
+                      ("small-fast-warm", "cdrl_warm_over_torch_seconds_to_1")):
+        if mine in rows and "small-fast-torch" in rows:
+            a, b = rows[mine].get("to_1"), rows["small-fast-torch"].get("to_1")
+            if a.get("reached", True) and b.get("reached", True):
+                result[key] = a["seconds"] / b["seconds"]
     emit(result, args.out)
     return 0
 

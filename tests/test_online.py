@@ -158,3 +158,58 @@ def test_controller_learns_a_trivially_learnable_reward(game):
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, env_params, uniform.init, uniform.step, seeds, 40))
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
+
+
+def _same(a, b):
+    """Equal arrays: floats to float rounding (the jitted step against the functions called
+    one by one), the rest exactly."""
+    a, b = np.asarray(a), np.asarray(b)
+    if np.issubdtype(a.dtype, np.floating):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+    else:
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
+    """`step_games`: where a game ends, the new game of `reset_games` on the step's second key
+    takes its place (its state and first frame); the others are the game's own step. Pinned
+    against the game's functions called directly, on a step where one game of three ends and
+    on one where none does (the new games are then drawn not at all)."""
+    g, params = game
+    size = ARCH.image_size
+    games3 = online.reset_games(g, params, jax.random.PRNGKey(1), 3, size)
+    # game 0 one step from its step limit: it ends on this step, games 1 and 2 go on
+    games3 = games3.replace(env_state=games3.env_state.replace(
+        time=games3.env_state.time.at[0].set(params.max_steps - 1)))
+    action = jnp.asarray([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    step = jax.jit(lambda gs, k: online.step_games(g, params, gs, action, k, size))
+    key, ends = jax.random.PRNGKey(2), [True, False, False]
+    after, nxt, reward, stats = step(games3, key)
+    k_env, k_reset = jax.random.split(key)
+    obs, state, r, term, trunc, _ = jax.vmap(g.step, in_axes=(0, 0, 0, None))(
+        jax.random.split(k_env, 3), games3.env_state, action, params)
+    fresh = online.reset_games(g, params, k_reset, 3, size)
+    _same(np.asarray(term | trunc), ends)
+    _same(np.asarray(after.is_first), ends)
+    _same(np.asarray(nxt), np.asarray(online.resize_obs(obs, size)))
+    _same(np.asarray(reward), np.asarray(r))
+    for i, end in enumerate(ends):
+        expected_state = jax.tree.map(lambda x: x[i], fresh.env_state if end else state)
+        expected_obs = (fresh.obs if end else online.resize_obs(obs, size))[i]
+        for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], after.env_state)),
+                        jax.tree.leaves(expected_state), strict=True):
+            _same(np.asarray(a), np.asarray(b))
+        _same(np.asarray(after.obs[i]), np.asarray(expected_obs))
+    assert float(after.episode_return[0]) == 0.0 and int(after.episode_length[0]) == 0
+    assert float(stats["finished_return"][0]) == pytest.approx(float(r[0]))
+    games3 = after
+    # the next step: no game ends, each goes on from where it is
+    key = jax.random.PRNGKey(3)
+    after, nxt, _, _ = step(games3, key)
+    obs, state, _, term, trunc, _ = jax.vmap(g.step, in_axes=(0, 0, 0, None))(
+        jax.random.split(jax.random.split(key)[0], 3), games3.env_state, action, params)
+    assert not bool(jnp.any(term | trunc)) and not bool(jnp.any(after.is_first))
+    for a, b in zip(jax.tree.leaves(after.env_state), jax.tree.leaves(state), strict=True):
+        _same(np.asarray(a), np.asarray(b))
+    _same(np.asarray(after.obs), np.asarray(online.resize_obs(obs, size)))
+    _same(np.asarray(after.episode_length), np.asarray(games3.episode_length) + 1)

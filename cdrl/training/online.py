@@ -102,13 +102,20 @@ def step_games(game, env_params, games: Games, executed: jax.Array, key, size: i
     nxt = jax.lax.stop_gradient(resize_obs(nxt, size))
     reward = jax.lax.stop_gradient(reward.astype(jnp.float32))
     done = term | trunc
-    fresh = reset_games(game, env_params, k_reset, executed.shape[0], size)
     ret, length = games.episode_return + reward, games.episode_length + 1
 
     def pick(f, s):
         return jnp.where(done.reshape(done.shape + (1,) * (s.ndim - 1)), f, s)
 
-    after = Games(env_state=jax.tree.map(pick, fresh.env_state, env_state), obs=pick(fresh.obs, nxt), is_first=done,
+    def restart(_):
+        fresh = reset_games(game, env_params, k_reset, executed.shape[0], size)
+        return jax.tree.map(pick, fresh.env_state, env_state), pick(fresh.obs, nxt)
+
+    # New games are drawn and drawn on screen only on the steps where one ends (a few in a
+    # hundred): the same values, without a second game's work on every step. (Under a `vmap`
+    # over runs the condition is batched and both branches run, as before.)
+    env_state, obs = jax.lax.cond(jnp.any(done), restart, lambda _: (env_state, nxt), None)
+    after = Games(env_state=env_state, obs=obs, is_first=done,
                   episode_return=jnp.where(done, 0.0, ret), episode_length=jnp.where(done, 0, length))
     stats = {"reward": reward, "done": done, "finished_return": jnp.where(done, ret, 0.0),
              "finished_length": jnp.where(done, length, 0), "action": executed}
