@@ -50,3 +50,14 @@ def recv_or_fail(pipe, proc):
         if not proc.is_alive():
             raise RuntimeError(f"a benchmark worker ended with exit code {proc.exitcode} (its traceback is above)")
     return pipe.recv()
+
+
+def checkout_commit(directory) -> str | None:
+    """The commit checked out in `directory` (a git worktree), or None where git cannot say."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "-C", str(directory), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None

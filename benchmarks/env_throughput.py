@@ -57,7 +57,7 @@ import os
 import sys
 import time
 
-from common import recv_or_fail, warn_if_busy
+from common import checkout_commit, recv_or_fail, warn_if_busy
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -307,6 +307,7 @@ def main() -> None:
                   f"[{w['min']:.0f}, {w['max']:.0f}]", flush=True)
     if args.baseline:
         results["baseline"] = os.path.abspath(args.baseline)
+        results["commit"], results["baseline_commit"] = checkout_commit(ROOT), checkout_commit(args.baseline)
         for b in batch_sizes:
             mine, base = _measure_against(args.baseline, args.policy, args.steps, b, seconds, repeats, args.devices)
             record(f"paired_batch{b}_obs_per_s", mine)

@@ -144,13 +144,14 @@ def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> di
 
 
 def main(argv=None) -> int:
-    from common import emit, warn_if_busy  # here: a worker process must not import cdrl before its checkout's
+    from common import checkout_commit, emit, warn_if_busy  # here: a worker process must not import cdrl before its checkout's
 
     args = _parse(argv)
     seconds = args.seconds or (0.5 if args.quick else 3.0)
     repeats = args.repeats or (2 if args.quick else 5)
     presets = ["tiny"] if args.quick else args.presets
-    result = {"benchmark": "online_throughput", "cpu_count": os.cpu_count(), "baseline": args.baseline,
+    result = {"benchmark": "online_throughput", "cpu_count": os.cpu_count(), "commit": checkout_commit(ROOT),
+              "baseline": args.baseline, "baseline_commit": args.baseline and checkout_commit(args.baseline),
               "seconds_per_repeat": seconds, "repeats": repeats, "load_avg_start": round(os.getloadavg()[0], 2),
               "rows": []}
     for preset in presets:
