@@ -64,13 +64,13 @@ def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size:
 
 def games_sharding(devices: int, batch_size: int):
     """The layout of a batch of ``batch_size`` games over this process's first ``devices``
-    devices (0: all of them): a ``NamedSharding`` splitting the batch axis (mesh axis ``games``), or None for one
-    device. The games are independent, so the sharded program runs each device's block with
-    no communication, and XLA's CPU backend runs the blocks of its host devices on separate
-    cores (``jax.config.update("jax_num_cpu_devices", N)`` before JAX starts, or
-    ``XLA_FLAGS=--xla_force_host_platform_device_count=N``). Raises ``ValueError`` naming
-    the option (as ``cdrl collect`` spells it) when there are fewer devices or the batch does
-    not split evenly."""
+    devices (0: all of them): a ``NamedSharding`` splitting the batch axis (mesh axis
+    ``games``), or None for one device. The games are independent, so the sharded program runs
+    each device's block with no communication, and XLA's CPU backend runs the blocks of its
+    host devices on separate cores (``jax.config.update("jax_num_cpu_devices", N)`` before JAX
+    starts, or ``XLA_FLAGS=--xla_force_host_platform_device_count=N``). Raises ``ValueError``
+    naming the option (as ``cdrl collect`` spells it) when there are fewer devices or the batch
+    does not split evenly."""
     import jax
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
