@@ -8,7 +8,7 @@ step are B x T (the games' steps). Learners (`--learners`, any subset):
   rollout   final_proposal, the thesis's online learner (reward ascent through the chunk)
   real      final_proposal with the replay buffer, 4 model updates a chunk and the actor-critic
             on the chunk just played (`--controller real --scope all`)
-  ppo       PPO's program (16 games x 32 steps unless --games says otherwise)
+  ppo       PPO's program at its own 16 games x 32 steps
 
 at the presets of `--presets` (small, thesis). The first step's seconds are reported as its
 compile time (JAX's persistent cache off: a real compile).
