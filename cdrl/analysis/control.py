@@ -60,6 +60,8 @@ CONFIGS: dict[str, dict] = {
                  "pretrain": {"variant": "final_proposal", "controller": "none"}},
     "real-pre-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
                      "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none"}},
+    "real-pre-all-open": {"variant": "reward_prediction", "controller": "real", "scope": "all", "noise_std": 0.05,
+                          "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "controller": "none"}},
     "real-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
                  "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
     "ppo": {"variant": "ppo"},
