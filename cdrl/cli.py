@@ -374,6 +374,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the `cdrl` command itself, not a call from Python: run it under tcmalloc
+        from cdrl.runs.allocator import reexec_with_allocator
+
+        try:
+            reexec_with_allocator()
+        except ValueError as exc:
+            print(f"cdrl: {exc}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     use_compile_cache(args)
     return args.func(args)
