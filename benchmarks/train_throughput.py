@@ -58,6 +58,10 @@ reported too (about a minute on 2 cores even for the small preset). `--online-ba
 the numbers of games (default: `--batches`; `--quick`: the smallest), `--skip-online` leaves
 it out.
 
+malloc: the benchmark re-executes itself under the `cdrl` command's malloc
+(`cdrl.runs.allocator`: tcmalloc where installed; the JSON's `malloc`), which torch's
+allocations share; `CDRL_MALLOC=system` runs both on glibc's.
+
 Torch threads: `torch.set_num_threads(os.cpu_count())` unless `--torch-threads`. On a machine
 that other processes keep busy, torch with as many threads as cores can be many times slower
 than with one (its OpenMP threads wait for each other): run on an idle machine, or compare
@@ -486,6 +490,9 @@ def print_table(res: dict) -> None:
 
 
 def main() -> None:
+    from cdrl.runs.allocator import reexec_with_allocator
+
+    reexec_with_allocator()  # malloc as the `cdrl` command has it (CDRL_MALLOC; torch's share it)
     args = _parse()
     import jax
 
@@ -505,6 +512,7 @@ def main() -> None:
         "jax_version": jax.__version__, "torch_version": torch.__version__,
         "jax_device": str(jax.devices()[0].device_kind), "python": platform.python_version(),
         "load_avg_start": os.getloadavg()[0], "persistent_compilation_cache": False,
+        "malloc": os.environ.get("CDRL_MALLOC_PRELOADED", "system"),
         "flops_source": "analytic (x3 forward); xla_flops_per_step from compiled cost_analysis, scan body counted once",
         "memory": "process RSS (VmHWM after clear_refs); growth = peak - RSS at reset",
     }
