@@ -34,7 +34,7 @@ def test_the_choice_of_library(tmp_path):
 def test_the_environment_to_reexecute_with():
     env = preload_environment({"LD_PRELOAD": "/opt/a.so /opt/b.so", "HOME": "/h"}, "libtcmalloc_minimal.so.4")
     assert env == {"LD_PRELOAD": "libtcmalloc_minimal.so.4:/opt/a.so:/opt/b.so", "HOME": "/h",
-                   PRELOADED_ENV: "libtcmalloc_minimal.so.4"}
+                   PRELOADED_ENV: "libtcmalloc_minimal.so.4", "TCMALLOC_LARGE_ALLOC_REPORT_THRESHOLD": str(2**40)}
     assert preload_environment({}, None) is None  # the system's malloc
     assert preload_environment({PRELOADED_ENV: "x.so"}, "libtcmalloc_minimal.so.4") is None  # re-executed already
     assert preload_environment({"LD_PRELOAD": "/usr/lib/libtcmalloc_minimal.so.4"}, "libtcmalloc_minimal.so.4") is None

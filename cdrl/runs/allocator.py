@@ -54,7 +54,10 @@ def preload_environment(environ: dict[str, str], library: str | None) -> dict[st
     preloads = [p for p in environ.get("LD_PRELOAD", "").replace(" ", ":").split(":") if p]
     if any(os.path.basename(p) == os.path.basename(library) for p in preloads):
         return None
-    return {**environ, "LD_PRELOAD": ":".join([library, *preloads]), PRELOADED_ENV: library}
+    env = {**environ, "LD_PRELOAD": ":".join([library, *preloads]), PRELOADED_ENV: library}
+    # tcmalloc reports every allocation over 1 GB on stderr, which a large batch's scratch buffer is
+    env.setdefault("TCMALLOC_LARGE_ALLOC_REPORT_THRESHOLD", str(2**40))
+    return env
 
 
 def reexec_with_allocator() -> None:
