@@ -111,7 +111,7 @@ def _worker(config: str, library: str | None, conn) -> None:
 
 
 def measure(config: str, library: str, seconds: float, repeats: int) -> dict:
-    from common import recv_or_fail, spread
+    from common import alternate_windows, recv_or_fail, spread
 
     ctx = mp.get_context("spawn")
     pipes, workers = [], []
@@ -128,14 +128,7 @@ def measure(config: str, library: str, seconds: float, repeats: int) -> dict:
         recv_or_fail(mine, w)
     if saved is not None:
         os.environ["LD_PRELOAD"] = saved
-    windows: list[list[tuple]] = [[], []]
-    for i in range(repeats):
-        for j in ((0, 1) if i % 2 == 0 else (1, 0)):
-            pipes[j].send(seconds)
-            windows[j].append(recv_or_fail(pipes[j], workers[j]))
-    for p, w in zip(pipes, workers):
-        p.send(None)
-        w.join()
+    windows = alternate_windows(pipes, workers, seconds, repeats)
     side = lambda ws: {"frames_per_s": spread([w[0] for w in ws]), "page_faults_per_step": spread([w[1] for w in ws]),  # noqa: E731
                        "kernel_share_of_cpu": spread([w[2] for w in ws])}
     return {"config": config, "preloaded": side(windows[0]), "system": side(windows[1]),

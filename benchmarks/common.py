@@ -61,3 +61,19 @@ def checkout_commit(directory) -> str | None:
                               check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
+
+
+def alternate_windows(pipes, workers, seconds: float, repeats: int) -> list[list]:
+    """Time two (or more) worker processes in alternating windows: `repeats` rounds, each sending
+    `seconds` to every worker in turn (the order reversed every other round, so that neither
+    always goes first) and collecting its answer; then tells each to stop (None) and joins it.
+    Returns each worker's answers, in round order."""
+    answers: list[list] = [[] for _ in pipes]
+    for i in range(repeats):
+        for j in (range(len(pipes)) if i % 2 == 0 else reversed(range(len(pipes)))):
+            pipes[j].send(seconds)
+            answers[j].append(recv_or_fail(pipes[j], workers[j]))
+    for p, w in zip(pipes, workers):
+        p.send(None)
+        w.join()
+    return answers

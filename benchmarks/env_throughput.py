@@ -57,7 +57,7 @@ import os
 import sys
 import time
 
-from common import checkout_commit, recv_or_fail, warn_if_busy
+from common import alternate_windows, checkout_commit, recv_or_fail, warn_if_busy
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -208,14 +208,7 @@ def _measure_against(baseline: str, policy_name: str, steps: int, batch: int, se
         pipes.append(mine)
         workers.append(w)
         recv_or_fail(mine, w)  # compiled and warm; the other compiles after, on an idle machine
-    rates: list[list[float]] = [[], []]
-    for i in range(repeats):
-        for j in ((0, 1) if i % 2 == 0 else (1, 0)):
-            pipes[j].send(seconds)
-            rates[j].append(recv_or_fail(pipes[j], workers[j]))
-    for p, w in zip(pipes, workers):
-        p.send(None)
-        w.join()
+    rates = alternate_windows(pipes, workers, seconds, repeats)
     return rates[0], rates[1]
 
 

@@ -114,7 +114,7 @@ def _spread(values) -> dict:
 
 def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> dict:
     """One configuration: this tree's program (and the baseline's, alternating windows)."""
-    from common import recv_or_fail
+    from common import alternate_windows, recv_or_fail
 
     ctx = mp.get_context("spawn")
     roots = [ROOT] + ([os.path.abspath(args.baseline)] if args.baseline else [])
@@ -126,15 +126,7 @@ def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> di
         pipes.append(mine)
         workers.append(w)
         described.append(recv_or_fail(mine, w))
-    rates: list[list[float]] = [[] for _ in roots]
-    for i in range(repeats):
-        order = range(len(roots)) if i % 2 == 0 else reversed(range(len(roots)))
-        for j in order:
-            pipes[j].send(seconds)
-            rates[j].append(recv_or_fail(pipes[j], workers[j]))
-    for p, w in zip(pipes, workers):
-        p.send(None)
-        w.join()
+    rates = alternate_windows(pipes, workers, seconds, repeats)
     row = {**described[0], "frames_per_s": _spread(rates[0])}
     if args.baseline:
         row["baseline_compile_s"] = described[1]["compile_s"]
