@@ -136,7 +136,7 @@ def measure(config: str, library: str, seconds: float, repeats: int) -> dict:
 
 
 def main(argv=None) -> int:
-    from common import emit, warn_if_busy
+    from common import finish
 
     from cdrl.runs.allocator import allocator_library
 
@@ -161,10 +161,7 @@ def main(argv=None) -> int:
               f"{sys_['frames_per_s']['median']:8.1f}, {sys_['page_faults_per_step']['median']:6.0f}, "
               f"{100 * sys_['kernel_share_of_cpu']['median']:3.0f} %; {sp['median']:.2f}x "
               f"[{sp['min']:.2f}, {sp['max']:.2f}]", flush=True)
-    result["load_avg_end"] = round(os.getloadavg()[0], 2)
-    warn_if_busy(result, result["load_avg_start"], result["load_avg_end"])
-    emit(result, args.out)
-    return 0
+    return finish(result, args.out)
 
 
 if __name__ == "__main__":

@@ -77,3 +77,12 @@ def alternate_windows(pipes, workers, seconds: float, repeats: int) -> list[list
         p.send(None)
         w.join()
     return answers
+
+
+def finish(result: dict, out: str | Path | None) -> int:
+    """The end of a benchmark whose `result` holds `load_avg_start`: the load average now, the
+    busy-machine warning where due (`warn_if_busy`), the JSON line (`emit`); returns 0."""
+    result["load_avg_end"] = round(os.getloadavg()[0], 2)
+    warn_if_busy(result, result["load_avg_start"], result["load_avg_end"])
+    emit(result, out)
+    return 0

@@ -136,7 +136,7 @@ def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> di
 
 
 def main(argv=None) -> int:
-    from common import checkout_commit, emit, warn_if_busy  # here: a worker process must not import cdrl before its checkout's
+    from common import checkout_commit, finish  # here: a worker process must not import cdrl before its checkout's
 
     args = _parse(argv)
     seconds = args.seconds or (0.5 if args.quick else 3.0)
@@ -158,10 +158,7 @@ def main(argv=None) -> int:
                 line += (f"; baseline {base['median']:.1f} frames/s, compile {row['baseline_compile_s']:.1f} s; "
                          f"this tree / baseline {sp['median']:.2f}x [{sp['min']:.2f}, {sp['max']:.2f}]")
             print(line, flush=True)
-    result["load_avg_end"] = round(os.getloadavg()[0], 2)
-    warn_if_busy(result, result["load_avg_start"], result["load_avg_end"])
-    emit(result, args.out)
-    return 0
+    return finish(result, args.out)
 
 
 if __name__ == "__main__":
