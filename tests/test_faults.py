@@ -7,6 +7,7 @@ input to the CLI and the API. Kill tests wait for a finished checkpoint (or epis
 killing, so they cannot pass without the fault having happened.
 """
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -839,3 +840,37 @@ def test_the_final_evaluation_is_recorded_before_the_final_checkpoint():
     finished = _Events()
     host_loop(finished, 4, Plan(steps=4, start=4, eval_every=2, checkpoint_every=2), [Sink()])
     assert finished.events == []
+
+
+def test_only_asyncio_reports_of_unawaited_reads_are_dropped_and_only_after_a_failed_read(caplog):
+    import asyncio
+
+    from cdrl.runs.checkpoint import _ClosedLoopCallbacks
+
+    def report(message):  # as asyncio reports them: the message, then the future on the next line
+        loop = asyncio.new_event_loop()
+        future = loop.create_future()
+        future.set_exception(ValueError("DATA_LOSS"))
+        future.exception()
+        loop.call_exception_handler({"message": message, "exception": ValueError("DATA_LOSS"), "future": future})
+        loop.close()
+
+    callbacks, asyncio_log, hook = _ClosedLoopCallbacks(), logging.getLogger("asyncio"), sys.unraisablehook
+    filters = list(asyncio_log.filters)
+    try:
+        with caplog.at_level("ERROR", logger="asyncio"):
+            with callbacks.dropped():
+                report("Task exception was never retrieved")
+                report("Future exception was never retrieved")
+                report("Exception in callback")
+            report("Task exception was never retrieved")  # no read failed: the filter is gone with the block
+            assert asyncio_log.filters == filters and sys.unraisablehook is hook
+            with callbacks.dropped() as inside:
+                inside.keep()
+            report("Future exception was never retrieved")  # a read failed: its futures may be collected later
+            report("Exception in callback")
+        assert [r.getMessage().partition("\n")[0] for r in caplog.records] == [
+            "Exception in callback", "Task exception was never retrieved", "Exception in callback"]
+    finally:
+        asyncio_log.filters[:] = filters
+        sys.unraisablehook = hook

@@ -58,35 +58,58 @@ def _first_line(exc: BaseException, limit: int = 200) -> str:
     return f"{type(exc).__name__}: {text[:limit]}{'...' if len(text) > limit else ''}"
 
 
-@contextlib.contextmanager
-def _closed_loop_callbacks_dropped():
-    """While orbax reads a checkpoint it cannot restore: orbax runs each restore in an event loop
-    of its own (`asyncio_utils.run_sync`) and closes it as soon as the first array read fails,
-    while tensorstore's reads of the other arrays are still pending; each of them completes into
-    the closed loop and its callback's `RuntimeError: Event loop is closed` reaches
-    `sys.unraisablehook`, a traceback each; the reads that failed as the first one did are
-    futures nobody awaits, and asyncio logs each ('Future exception was never retrieved') when
-    it is collected. Only those are dropped, and only here (the futures are collected before it
-    ends); a checkpoint with checksums is checked before orbax reads it, so this is for those
-    written without."""
-    previous = sys.unraisablehook
+def _drops_closed_loop_callback(unraisable) -> bool:
+    return isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"
 
-    def hook(unraisable):
-        if not (isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"):
-            previous(unraisable)
 
-    def unawaited(record: logging.LogRecord) -> bool:
-        return record.getMessage() not in ("Future exception was never retrieved", "Task exception was never retrieved")
+def _unawaited(record: logging.LogRecord) -> bool:
+    """False for asyncio's report of an exception nobody awaited (its first line; the next name
+    the future)."""
+    first_line = record.getMessage().partition("\n")[0]
+    return first_line not in ("Future exception was never retrieved", "Task exception was never retrieved")
 
-    asyncio_log = logging.getLogger("asyncio")
-    sys.unraisablehook = hook
-    asyncio_log.addFilter(unawaited)
-    try:
-        yield
-    finally:
-        gc.collect()
-        asyncio_log.removeFilter(unawaited)
-        sys.unraisablehook = previous
+
+class _ClosedLoopCallbacks:
+    """What orbax leaves behind when it reads a checkpoint it cannot restore: orbax runs each
+    restore in an event loop of its own (`asyncio_utils.run_sync`) and closes it as soon as the
+    first array read fails, while tensorstore's reads of the other arrays are still pending; each
+    of them completes into the closed loop and its callback's `RuntimeError: Event loop is
+    closed` reaches `sys.unraisablehook`, a traceback each; the reads that failed as the first
+    one did are futures nobody awaits, and asyncio logs each ('Future/Task exception was never
+    retrieved') when it is collected, which can be after the restore has returned (tensorstore's
+    threads hold the last references). So: dropped while checkpoints are read, and for the rest
+    of the process once a read has failed there; nothing else is dropped. A checkpoint with
+    checksums is checked before orbax reads it, so this is for those written without."""
+
+    def __init__(self):
+        self.previous_hook, self.kept = None, False
+
+    def hook(self, unraisable):
+        if not _drops_closed_loop_callback(unraisable):
+            self.previous_hook(unraisable)
+
+    @contextlib.contextmanager
+    def dropped(self):
+        """Drop them while the block reads; `keep()` inside it leaves them dropped for good."""
+        if self.kept:
+            yield self
+            return
+        self.previous_hook = sys.unraisablehook
+        sys.unraisablehook = self.hook
+        logging.getLogger("asyncio").addFilter(_unawaited)
+        try:
+            yield self
+        finally:
+            gc.collect()
+            if not self.kept:
+                logging.getLogger("asyncio").removeFilter(_unawaited)
+                sys.unraisablehook = self.previous_hook
+
+    def keep(self):
+        self.kept = True
+
+
+_CLOSED_LOOP_CALLBACKS = _ClosedLoopCallbacks()
 
 
 # How many times a reader lists the checkpoints again after one it was reading was removed.
@@ -230,8 +253,8 @@ class Checkpoints:
             steps = self.steps()
             if not steps:
                 raise CheckpointError(f"no checkpoint found in {self.directory}")
-            with _closed_loop_callbacks_dropped():
-                found, warnings = self._newest_good(steps, like, check_meta)
+            with _CLOSED_LOOP_CALLBACKS.dropped() as callbacks:
+                found, warnings = self._newest_good(steps, like, check_meta, callbacks.keep)
             if found is not _VANISHED:
                 break
         else:
@@ -243,10 +266,11 @@ class Checkpoints:
             f"every checkpoint in {self.directory} is corrupt or unreadable:\n  " + "\n  ".join(warnings)
         )
 
-    def _newest_good(self, steps: list[int], like, check_meta):
+    def _newest_good(self, steps: list[int], like, check_meta, read_failed):
         """((state, meta) of the newest of `steps` that restores, or None; warnings), or
         (_VANISHED, ...) when a checkpoint disappeared while it was read: a live writer rotated
-        it away, and a new listing holds a newer one. Not a corruption, so no warning."""
+        it away, and a new listing holds a newer one. Not a corruption, so no warning.
+        `read_failed()` is called when orbax failed to read a checkpoint's arrays."""
         warnings = []
         for step in reversed(steps):
             path = self.directory / str(step)
@@ -268,6 +292,7 @@ class Checkpoints:
             try:
                 return self._restore(step, like), warnings
             except Exception as exc:  # noqa: BLE001
+                read_failed()
                 if not path.exists():
                     return _VANISHED, warnings
                 warnings.append(f"checkpoint {path} is corrupt ({_first_line(exc)})")
