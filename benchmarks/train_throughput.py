@@ -36,7 +36,9 @@ its loss back to the host (as a training loop that logs does). Reported per conf
     repeat; reported as the peak itself and as the growth over the RSS at the reset. This is
     process RSS: the other framework's resident weights and buffers are in the peak (not in
     the growth), and memory that the allocator kept from earlier phases can hide growth, so
-    the growth is a lower bound. cdrl's compile is reported separately;
+    the growth is a lower bound. cdrl's compile is reported separately, and so is the scratch
+    memory XLA's compiled train step allocates for each call (`xla_temp_mib`, from
+    `memory_analysis()`: the activations kept for the backward pass and the working arrays);
   * model-FLOP utilisation: model FLOPs per step / median step time / matmul peak.
     Model FLOPs are ANALYTIC: the multiply-adds (x2) of every convolution, transposed
     convolution (counted on its un-dilated input), LSTM and FC matmul per frame, times 3 for
@@ -327,9 +329,12 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
         float(metrics["loss"])
         compile_s = time.perf_counter() - t0
     # The executable is cached: this lowers again but does not compile again.
-    cost = train_step.lower(v, state, hp, chunk).compile().cost_analysis()
+    compiled = train_step.lower(v, state, hp, chunk).compile()
+    cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    memory = compiled.memory_analysis()
+    xla_temp_mib = memory.temp_size_in_bytes / MiB if memory is not None else None
 
     def torch_step(carry):
         loss, carry, _ = tr.train_step(model, opt, carry, t_obs, t_next, t_first, monitor=True)
@@ -378,6 +383,7 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
     out["cdrl"]["compile_s"] = compile_s
     out["cdrl"]["compile_peak_rss_mib"] = compile_mem.peak_mib
     out["cdrl"]["compile_peak_growth_mib"] = compile_mem.growth_mib
+    out["cdrl"]["xla_temp_mib"] = xla_temp_mib
     out["cdrl"]["compile_target_s"] = COMPILE_TARGET_S
     out["cdrl"]["compile_target_met"] = bool(compile_s < COMPILE_TARGET_S) if args.preset == TARGET_PRESET else None
     out["ratio_cdrl_over_torch"] = out["cdrl"]["frames_per_s"] / out["torch"]["frames_per_s"]
