@@ -214,7 +214,8 @@ def _plain_autoencoder(params, arch, frames):
 def test_recomputed_layers_and_encoder_passes_change_no_value_or_gradient(monkeypatch):
     """The image-sized layers recomputed in the backward pass, and a chunk's frames encoded in
     passes (7 frames in passes of 3: two passes and a remainder of 1), against the autoencoder
-    written out plainly: the same predictions, the same gradient."""
+    written out plainly: the same predictions, the same gradient. (Both only where those
+    layers are large: forced here on the tiny preset.)"""
     from cdrl.models import base
 
     monkeypatch.setattr(base, "ENCODER_PASS_FRAMES", 3)
@@ -233,12 +234,19 @@ def test_recomputed_layers_and_encoder_passes_change_no_value_or_gradient(monkey
     def plain(p):
         return _plain_autoencoder(p, arch, frames.reshape(7, *frames.shape[2:])).reshape(frames.shape)
 
+    def gradient_jaxpr():
+        return str(jax.make_jaxpr(jax.grad(lambda p: loss(p, library)))(params))
+
+    # Small layers are kept, not recomputed, and encoded in one pass.
+    assert not nets.recomputes_image_layers(arch) and nets.recomputes_image_layers(THESIS)
+    assert "remat" not in gradient_jaxpr() and "scan" not in gradient_jaxpr()
+    monkeypatch.setattr(nets, "RECOMPUTE_FROM_BYTES", 0)
     np.testing.assert_allclose(library(params), plain(params), rtol=1e-5, atol=1e-5)
     got, want = jax.grad(loss)(params, library), jax.grad(loss)(params, plain)
     for path, g in jax.tree_util.tree_leaves_with_path(got):
         w = dict(jax.tree_util.tree_leaves_with_path(want))[path]
         np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
-    jaxpr = str(jax.make_jaxpr(jax.grad(lambda p: loss(p, library)))(params))
+    jaxpr = gradient_jaxpr()
     assert jaxpr.count("remat") >= 2 and "scan" in jaxpr  # the two recomputed layers; the passes
 
 

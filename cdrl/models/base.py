@@ -60,11 +60,12 @@ def bce_with_logits(logits: jax.Array, target: jax.Array) -> jax.Array:
     return jnp.mean(elementwise_bce(logits, target))
 
 
-# Frames per pass of the observation encoder over a chunk: a chunk of more frames is encoded
-# in passes of this many, one after the other (`lax.map`), so that the backward pass's
-# working arrays of the image-sized layers are those of one pass. Thesis preset, B 8 x T 32
-# (256 frames): 809 MiB of XLA scratch for the train step instead of 916 MiB in one pass,
-# frames per second unchanged (`benchmarks/train_throughput.py`).
+# Frames per pass of the observation encoder over a chunk, where its image-sized layers are
+# large (`nets.recomputes_image_layers`): a chunk of more frames is encoded in passes of this
+# many, one after the other (`lax.map`), so that the backward pass's working arrays of those
+# layers are those of one pass. Thesis preset, B 8 x T 32 (256 frames): 809 MiB of XLA scratch
+# for the train step instead of 916 MiB in one pass, frames per second unchanged
+# (`benchmarks/train_throughput.py`).
 ENCODER_PASS_FRAMES = 128
 
 
@@ -183,7 +184,8 @@ class Variant:
     # ---- shared pieces
     def encode(self, params: dict, obs: jax.Array, action: jax.Array) -> jax.Array:
         """Input code k_t for frames `[..., H, W]` (and actions `[..., A]`)."""
-        k = _flat(lambda o: nets.obs_encoder(params["obs_enc"], self.arch, o), obs, 2, ENCODER_PASS_FRAMES)
+        passes = ENCODER_PASS_FRAMES if nets.recomputes_image_layers(self.arch) else None
+        k = _flat(lambda o: nets.obs_encoder(params["obs_enc"], self.arch, o), obs, 2, passes)
         if self.uses_action:
             ka = nets.mlp(params["act_enc"], action, final_selu=True)
             k = jnp.concatenate([k, ka], axis=-1)

@@ -83,19 +83,31 @@ def _conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, strid
 # the largest outputs: 76 x 76 x 16 per frame at the thesis's size, 95 MB over a chunk of 256
 # frames. Differentiated as they are, each keeps its pre-activation beside its output until
 # the backward pass; recomputed there from their inputs instead (one convolution each), the
-# thesis-sized train step at B 8 x T 32 needs 916 MiB of XLA scratch instead of 1029 MiB, at
-# no measurable cost in speed (`benchmarks/train_throughput.py`).
+# thesis-sized train step at B 8 x T 32 needs 916 MiB of XLA scratch instead of 1029 MiB
+# (`closed_loop_minus`: 593 instead of 863 MiB with the encoder's passes), at no measurable
+# cost in speed (`benchmarks/train_throughput.py`). Where that output is small, the
+# recomputation is all cost (the small preset's 32 x 32 x 8, 32 KiB a frame: online programs
+# 3-5 % slower), so only from RECOMPUTE_FROM_BYTES a frame.
+RECOMPUTE_FROM_BYTES = 128 * 1024
 _conv_selu_recomputed = jax.checkpoint(_conv_selu, static_argnums=(3, 4))
 _conv_transpose_selu_recomputed = jax.checkpoint(_conv_transpose_selu, static_argnums=(3, 4))
+
+
+def recomputes_image_layers(arch: ArchConfig) -> bool:
+    """Whether the layers next to the image are recomputed in the backward pass: their output,
+    `image_size / stride` squared times the first layer's features in float32, is at least
+    RECOMPUTE_FROM_BYTES a frame (the thesis preset: yes; small and tiny: no)."""
+    return arch.encoder_sizes[1] ** 2 * arch.encoder[0].features * 4 >= RECOMPUTE_FROM_BYTES
 
 
 def obs_encoder(params: Params, arch: ArchConfig, frames: jax.Array) -> jax.Array:
     """E_o: frames `[B, H, W]` in [0, 1] -> codes `[B, obs_code]` (SELU after every layer).
     The frames enter as (frames - arch.obs_mean) / arch.obs_std."""
     x = (frames[..., None] - arch.obs_mean) / arch.obs_std
+    recompute = recomputes_image_layers(arch)
     for i, spec in enumerate(arch.encoder):
         layer = params[f"conv{i}"]
-        f = _conv_selu_recomputed if i == 0 else _conv_selu
+        f = _conv_selu_recomputed if i == 0 and recompute else _conv_selu
         x = f(x, layer["kernel"], layer["bias"], spec.stride, spec.padding)
     return x.reshape(x.shape[0], -1)
 
@@ -125,13 +137,13 @@ def obs_decoder_logits(params: Params, arch: ArchConfig, codes: jax.Array) -> ja
     """D_o before its output sigmoid: codes `[B, obs_code]` -> logits `[B, H, W]`."""
     layers = _decoder_layers(arch)
     x = codes.reshape(codes.shape[0], 1, 1, codes.shape[-1])
-    last = len(layers) - 1
+    last, recompute = len(layers) - 1, recomputes_image_layers(arch)
     for i, (spec, _, _) in enumerate(layers):
         layer = params[f"deconv{i}"]
         if i == last:
             x = conv_transpose(x, layer["kernel"], spec.stride, spec.padding) + layer["bias"]
         else:
-            f = _conv_transpose_selu_recomputed if i == last - 1 else _conv_transpose_selu
+            f = _conv_transpose_selu_recomputed if i == last - 1 and recompute else _conv_transpose_selu
             x = f(x, layer["kernel"], layer["bias"], spec.stride, spec.padding)
     return x[..., 0]
 
