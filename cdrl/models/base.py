@@ -80,8 +80,9 @@ def _flat(fn, x: jax.Array, n_trailing: int, pass_frames: int | None = None) -> 
     else:
         whole = n - n % pass_frames
         passes = jax.lax.map(fn, flat[:whole].reshape((whole // pass_frames, pass_frames) + flat.shape[1:]))
-        parts = [passes.reshape((whole,) + passes.shape[2:])] + ([fn(flat[whole:])] if whole < n else [])
-        y = jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+        y = passes.reshape((whole,) + passes.shape[2:])
+        if whole < n:
+            y = jnp.concatenate([y, fn(flat[whole:])])
     return y.reshape(lead + y.shape[1:])
 
 
