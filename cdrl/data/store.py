@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import zipfile
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -246,6 +247,11 @@ class EpisodeDataset:
 
 
 _READ_BLOCK = 1 << 22
+# numpy parses a .npy header with `ast.literal_eval`, and CPython 3.11's parser is not safe to
+# run from two threads at once (it can raise `SystemError: AST constructor recursion depth
+# mismatch`): the checking threads read their headers (and the small arrays they check whole)
+# one at a time.
+_HEADER_PARSE = threading.Lock()
 
 
 def _npy_header(member) -> tuple[tuple[int, ...], np.dtype]:
@@ -253,7 +259,8 @@ def _npy_header(member) -> tuple[tuple[int, ...], np.dtype]:
     read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
     if version not in read:
         raise ValueError(f"unsupported .npy version {version}")
-    shape, fortran, dtype = read[version](member)
+    with _HEADER_PARSE:
+        shape, fortran, dtype = read[version](member)
     if fortran:
         raise ValueError("Fortran-ordered arrays are not written by cdrl")
     return shape, dtype
@@ -274,7 +281,7 @@ def _check_episode_file(path: Path, length: int, frame_shape: tuple | None, fram
                     pass
             arrays = {}
             for name in ("actions", "rewards"):
-                with z.open(f"{name}.npy") as member:
+                with z.open(f"{name}.npy") as member, _HEADER_PARSE:
                     arrays[name] = np.lib.format.read_array(member, allow_pickle=False)
     except FileNotFoundError:
         return f"episode file {path} is missing"
@@ -302,7 +309,9 @@ def _check_episode_file(path: Path, length: int, frame_shape: tuple | None, fram
         problems.append("rewards are not finite")
     if str(dtype) == "float32" and not problems:
         try:
-            Episode(**dict(np.load(path, allow_pickle=False)))  # float frames: check their range too
+            with _HEADER_PARSE:
+                stored = dict(np.load(path, allow_pickle=False))
+            Episode(**stored)  # float frames: check their range too
         except ValueError as e:
             problems.append(str(e))
     return f"episode file {path} is invalid: " + "; ".join(problems) if problems else None
