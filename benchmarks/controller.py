@@ -21,6 +21,12 @@ about 5 hours on 2 cores):
 `--quick` is a smoke test (tiny preset, a few updates; says only that the script runs). Runs
 are kept under `--work-dir`; a finished run is read back and an unfinished one resumed, so a
 killed experiment continues where it stopped (notebook 03 reads the same runs).
+
+`--merge A.json B.json ...` runs nothing: it pools result files of the same experiment run in
+several invocations (other seeds, other configurations; `cdrl.analysis.control.merge` checks
+that they share the budget and the held-out games) and recomputes the across-seed figures:
+
+    .venv/bin/python benchmarks/controller.py --merge seeds01.json seed2.json --out result.json
 """
 from __future__ import annotations
 
@@ -48,7 +54,11 @@ def main(argv=None) -> int:
     parser.add_argument("--work-dir", default=None, help="where the runs go (default: a temporary directory)")
     parser.add_argument("--out", default=None, help="also write the JSON result to this file")
     parser.add_argument("--figure", default=None, help="draw the learning curves into this PNG file")
+    parser.add_argument("--merge", nargs="+", default=None, metavar="FILE",
+                        help="run nothing: pool these result files (JSON) into one and recompute the across-seed figures")
     args = parser.parse_args(argv)
+    if args.merge:
+        return merge_files(args.merge, args.out, args.figure)
     import jax
 
     # Every seed of a configuration runs the same programs: compile each once.
@@ -72,6 +82,31 @@ def main(argv=None) -> int:
 
         save_figure(curves_figure(results), Path(args.figure))
     emit(results, args.out)
+    return 0
+
+
+def merge_files(paths, out, figure) -> int:
+    import json
+
+    from cdrl.analysis.control import curves_figure, format_results, merge
+
+    parts = []
+    for path in paths:
+        try:
+            parts.append(json.loads(Path(path).read_text()))
+        except (OSError, json.JSONDecodeError) as e:
+            raise SystemExit(f"--merge: cannot read the result file {path}: {e}") from None
+    try:
+        results = merge(parts)
+    except ValueError as e:
+        raise SystemExit(f"--merge: {e}") from None
+    results["merged_from"] = [str(p) for p in paths]
+    print(format_results(results), file=sys.stderr, flush=True)
+    if figure:
+        from cdrl.analysis.plots import save_figure
+
+        save_figure(curves_figure(results), Path(figure))
+    emit(results, out)
     return 0
 
 

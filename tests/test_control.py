@@ -1,7 +1,12 @@
 """Control: the reference policies and the protocol every controller is measured with, and the
 learner whose controller trains in imagination (`cdrl.training.dream`): its pieces against
-equations and independent paths, and a reward any controller can learn."""
+equations and independent paths, and a reward any controller can learn; the experiment's
+results pooled across invocations."""
 import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -9,6 +14,7 @@ import numpy as np
 import pytest
 
 import games
+from cdrl.analysis import control
 from cdrl.evaluation import play
 from cdrl.models import make_variant
 from cdrl.models.arch import TINY
@@ -293,7 +299,6 @@ def test_the_experiment_counts_a_pretrained_world_models_data(tmp_path):
     """`critic-pre` trains its world model offline first and starts the controller run from it:
     its game frames and its learning curve count the pre-training data's frames, and the
     pre-training's own figures are reported."""
-    from cdrl.analysis import control
     from cdrl.runs.rundir import RunDir
 
     budget = control.BUDGETS["tiny"]
@@ -308,3 +313,79 @@ def test_the_experiment_counts_a_pretrained_world_models_data(tmp_path):
     assert seed["frames"] == online.steps * online.batch * online.unroll + data_frames
     assert seed["curve"][0][0] == online.eval_every * online.batch * online.unroll + data_frames
     assert np.isfinite(seed["pretrain"]["excess_ratio"]) and np.isfinite(seed["excess_ratio_held_out"])
+
+
+def _seed_result(ret, references, length=180.0):
+    return {"return": ret, "length": length, "frames": 96, "curve": [[48, ret - 1.0], [96, ret]],
+            "references": references, "excess_ratio_held_out": 0.5 + ret / 10,
+            "reward_fit": {"correlation": ret / 10, "r2": ret / 20}}
+
+
+def _results(per_config, references, seeds, **budget):
+    return {"budget": {**dataclasses.asdict(control.BUDGETS["tiny"]), **budget, "seeds": seeds},
+            "references": references,
+            "configs": {name: _row(name, {str(s): _seed_result(r, references) for s, r in rows.items()})
+                        for name, rows in per_config.items()}}
+
+
+def _row(name, per_seed):
+    return control.summarise(control.CONFIGS[name], per_seed)
+
+
+REFS = {"never_accelerate": {"mean_return": 2.5, "ci95": [2.0, 3.0], "episodes": 4, "mean_length": 180.0}}
+
+
+def test_merged_results_pool_the_seeds_and_recompute_the_figures_across_them():
+    """Seeds run in two invocations, merged: the pooled per-seed rows, and mean, sample
+    standard deviation and the Student-t 95 % CI over the three seeds, pinned against the
+    formula with t(0.975, 2 dof) = 4.3027 from the table."""
+    a = _results({"critic": {0: 1.0, 1: 3.0}, "ppo": {0: 5.0}}, REFS, [0, 1], name="full")
+    b = _results({"critic": {2: 2.0}}, REFS, [2], name="full")
+    merged = control.merge([a, b])
+    row = merged["configs"]["critic"]
+    assert list(row["seeds"]) == ["0", "1", "2"] and merged["budget"]["seeds"] == [0, 1, 2]
+    assert row["return"]["per_seed"] == [1.0, 3.0, 2.0]
+    assert row["return"]["mean"] == pytest.approx(2.0) and row["return"]["std"] == pytest.approx(1.0)
+    half = 4.3027 * 1.0 / np.sqrt(3)
+    assert row["return"]["ci95"] == pytest.approx([2.0 - half, 2.0 + half], abs=1e-3)
+    assert row["excess_ratio_held_out"]["mean"] == pytest.approx(0.7)
+    assert row["reward_fit"]["correlation"]["per_seed"] == pytest.approx([0.1, 0.3, 0.2])
+    assert merged["configs"]["ppo"]["return"]["per_seed"] == [5.0]  # a configuration only one part ran
+    assert merged["references"] == REFS
+
+
+def test_merging_refuses_results_of_other_games_budgets_or_conflicting_seeds():
+    a = _results({"critic": {0: 1.0}}, REFS, [0])
+    other_games = {"never_accelerate": {**REFS["never_accelerate"], "mean_return": 2.6}}
+    with pytest.raises(ValueError, match="other held-out games"):
+        control.merge([a, _results({"critic": {1: 2.0}}, other_games, [1])])
+    with pytest.raises(ValueError, match="differs in frames, level"):
+        control.merge([a, _results({"critic": {1: 2.0}}, REFS, [1], frames=192, level="heading")])
+    with pytest.raises(ValueError, match="seed 0 of configuration 'critic' differs"):
+        control.merge([a, _results({"critic": {0: 1.5}}, REFS, [0])])
+    with pytest.raises(ValueError, match="not a control experiment's result"):
+        control.merge([a, {"configs": {}}])
+    assert control.merge([a, a])["configs"]["critic"]["return"]["per_seed"] == [1.0]  # the same seed twice
+    read_back = json.loads(json.dumps(_results({"critic": {1: 2.0}}, REFS, [1])))  # tuples become lists
+    assert control.merge([a, read_back])["configs"]["critic"]["return"]["per_seed"] == [1.0, 2.0]
+
+
+def test_the_benchmark_merges_result_files_and_names_a_bad_one(tmp_path):
+    """`benchmarks/controller.py --merge` writes `cdrl.analysis.control.merge`'s result and the
+    files it came from; an unreadable file is named in the error and nothing is written."""
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "controller.py"
+    a = _results({"critic": {0: 1.0, 1: 3.0}}, REFS, [0, 1], name="full")
+    b = _results({"critic": {2: 2.0}}, REFS, [2], name="full")
+    (tmp_path / "a.json").write_text(json.dumps(a))
+    (tmp_path / "b.json").write_text(json.dumps(b))
+    out = tmp_path / "merged.json"
+    subprocess.run([sys.executable, str(script), "--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                    "--out", str(out)], check=True, capture_output=True, text=True)
+    merged = json.loads(out.read_text())
+    assert merged.pop("merged_from") == [str(tmp_path / "a.json"), str(tmp_path / "b.json")]
+    assert merged == json.loads(json.dumps(control.merge([a, b])))
+
+    (tmp_path / "broken.json").write_text("{\"budget\": ")
+    bad = subprocess.run([sys.executable, str(script), "--merge", str(tmp_path / "a.json"), str(tmp_path / "broken.json"),
+                          "--out", str(tmp_path / "never.json")], capture_output=True, text=True)
+    assert bad.returncode != 0 and "broken.json" in bad.stderr and not (tmp_path / "never.json").exists()

@@ -27,6 +27,7 @@ run is read back, an unfinished one resumed, so an experiment continues where it
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Sequence
@@ -209,22 +210,73 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
             # a whole experiment ran out of the JIT's memory ("LLVM ERROR: Unable to allocate
             # section memory"). The next seed loads them again from the compilation cache.
             jax.clear_caches()
-        first = per_seed[str(seeds[0])]
-        results["references"] = results["references"] or first["references"]
-        row = {"options": CONFIGS[name], "frames": first["frames"], "seeds": per_seed,
-               "return": across([s["return"] for s in per_seed.values()]),
-               "length": across([s["length"] for s in per_seed.values()])}
-        for key in ("predicted_reward_per_step", "real_reward_per_step", "excess_ratio_last_quarter",
-                    "excess_ratio_held_out"):
-            if key in first:
-                row[key] = across([s[key] for s in per_seed.values()])
-        if "reward_fit" in first:
-            row["reward_fit"] = {k: across([s["reward_fit"][k] for s in per_seed.values()])
-                                 for k in ("correlation", "r2")}
-        results["configs"][name] = row
+        results["references"] = results["references"] or per_seed[str(seeds[0])]["references"]
+        results["configs"][name] = summarise(CONFIGS[name], per_seed)
         if on_config is not None:
             on_config(results)
     return results
+
+
+def summarise(options: dict, per_seed: dict) -> dict:
+    """A configuration's row: its options, the first seed's game frames, the per-seed results
+    (seed as a string -> `seed_result`'s dict) and the across-seed figures of each."""
+    first = next(iter(per_seed.values()))
+    row = {"options": options, "frames": first["frames"], "seeds": per_seed,
+           "return": across([s["return"] for s in per_seed.values()]),
+           "length": across([s["length"] for s in per_seed.values()])}
+    for key in ("predicted_reward_per_step", "real_reward_per_step", "excess_ratio_last_quarter",
+                "excess_ratio_held_out"):
+        if key in first:
+            row[key] = across([s[key] for s in per_seed.values()])
+    if "reward_fit" in first:
+        row["reward_fit"] = {k: across([s["reward_fit"][k] for s in per_seed.values()])
+                             for k in ("correlation", "r2")}
+    return row
+
+
+def merge(parts: Sequence[dict]) -> dict:
+    """Results of one experiment run in several invocations (other seeds, other configurations)
+    as one: the per-seed rows pooled and the across-seed figures recomputed.
+
+    Raises ValueError, naming what differs, unless every part has the same budget (its seeds
+    and name aside), the same reference rows (so the same held-out games) and, per configuration, the
+    same options; a seed reported by two parts must carry the same result in both."""
+    if not parts:
+        raise ValueError("nothing to merge: no results given")
+    for i, part in enumerate(parts):
+        missing = [k for k in ("budget", "references", "configs") if k not in part]
+        if missing:
+            raise ValueError(f"results {i} is not a control experiment's result (no {', '.join(missing)})")
+    first = parts[0]
+
+    def budget_of(r):  # the budget's `name` only labels its other fields; read back, tuples are lists
+        return json.loads(json.dumps({k: v for k, v in r["budget"].items() if k not in ("seeds", "name")}))
+
+    configs: dict[str, tuple[dict, dict]] = {}
+    for i, part in enumerate(parts):
+        if budget_of(part) != budget_of(first):
+            diff = sorted(k for k in budget_of(part).keys() | budget_of(first).keys()
+                          if budget_of(part).get(k) != budget_of(first).get(k))
+            raise ValueError(f"results {i} ran another budget than results 0 (differs in {', '.join(diff)})")
+        if part["references"] != first["references"]:
+            raise ValueError(f"results {i} scored other held-out games than results 0 (its reference rows differ)")
+        for name, row in part["configs"].items():
+            options, per_seed = configs.setdefault(name, (row["options"], {}))
+            if row["options"] != options:
+                raise ValueError(f"configuration {name!r} of results {i} has other options than before: "
+                                 f"{row['options']} against {options}")
+            for seed, result in row["seeds"].items():
+                if seed in per_seed and per_seed[seed] != result:
+                    raise ValueError(f"seed {seed} of configuration {name!r} differs between the results")
+                per_seed[seed] = result
+    seeds = sorted({int(s) for _, per_seed in configs.values() for s in per_seed})
+    out = {"budget": {**first["budget"], "seeds": seeds}, "references": first["references"], "configs": {}}
+    for name, (options, per_seed) in configs.items():
+        out["configs"][name] = summarise(options, {s: per_seed[s] for s in sorted(per_seed, key=int)})
+    warnings = sorted({p["warning"] for p in parts if p.get("warning")})
+    if warnings:
+        out["warning"] = "; ".join(warnings)
+    return out
 
 
 def format_results(results: dict) -> str:
