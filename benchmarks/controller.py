@@ -55,7 +55,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="also write the JSON result to this file")
     parser.add_argument("--figure", default=None, help="draw the learning curves into this PNG file")
     parser.add_argument("--merge", nargs="+", default=None, metavar="FILE",
-                        help="run nothing: pool these result files (JSON) into one and recompute the across-seed figures")
+                        help="run nothing: pool these result files (JSON) into one, the figures across seeds "
+                             "recomputed")
     args = parser.parse_args(argv)
     if args.merge:
         return merge_files(args.merge, args.out, args.figure)

@@ -386,6 +386,7 @@ def test_the_benchmark_merges_result_files_and_names_a_bad_one(tmp_path):
     assert merged == json.loads(json.dumps(control.merge([a, b])))
 
     (tmp_path / "broken.json").write_text("{\"budget\": ")
-    bad = subprocess.run([sys.executable, str(script), "--merge", str(tmp_path / "a.json"), str(tmp_path / "broken.json"),
-                          "--out", str(tmp_path / "never.json")], capture_output=True, text=True)
+    bad = subprocess.run([sys.executable, str(script), "--merge", str(tmp_path / "a.json"),
+                          str(tmp_path / "broken.json"), "--out", str(tmp_path / "never.json")],
+                         capture_output=True, text=True)
     assert bad.returncode != 0 and "broken.json" in bad.stderr and not (tmp_path / "never.json").exists()

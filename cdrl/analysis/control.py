@@ -239,8 +239,9 @@ def merge(parts: Sequence[dict]) -> dict:
     as one: the per-seed rows pooled and the across-seed figures recomputed.
 
     Raises ValueError, naming what differs, unless every part has the same budget (its seeds
-    and name aside), the same reference rows (so the same held-out games) and, per configuration, the
-    same options; a seed reported by two parts must carry the same result in both."""
+    and name aside), the same reference rows (so the same held-out games) and, per
+    configuration, the same options; a seed reported by two parts must carry the same result
+    in both."""
     if not parts:
         raise ValueError("nothing to merge: no results given")
     for i, part in enumerate(parts):
