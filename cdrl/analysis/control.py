@@ -253,11 +253,12 @@ def merge(parts: Sequence[dict]) -> dict:
     def budget_of(r):  # the budget's `name` only labels its other fields; read back, tuples are lists
         return json.loads(json.dumps({k: v for k, v in r["budget"].items() if k not in ("seeds", "name")}))
 
+    base = budget_of(first)
     configs: dict[str, tuple[dict, dict]] = {}
     for i, part in enumerate(parts):
-        if budget_of(part) != budget_of(first):
-            diff = sorted(k for k in budget_of(part).keys() | budget_of(first).keys()
-                          if budget_of(part).get(k) != budget_of(first).get(k))
+        budget = budget_of(part)
+        if budget != base:
+            diff = sorted(k for k in budget.keys() | base.keys() if budget.get(k) != base.get(k))
             raise ValueError(f"results {i} ran another budget than results 0 (differs in {', '.join(diff)})")
         if part["references"] != first["references"]:
             raise ValueError(f"results {i} scored other held-out games than results 0 (its reference rows differ)")
