@@ -1,0 +1,87 @@
+"""The north-up game's symmetries: quarter turns and mirror images of a frame, with the buttons
+they map to.
+
+With the ``north`` camera the player's head is the centre of every frame and the arena is a
+square torus, so turning the whole world by a quarter turn about the head, or mirroring it, gives
+another world the game could be in, and its frame is the original frame turned or mirrored (the
+observation grid is symmetric about its centre, so pixel centres land on pixel centres).  What a
+button does relative to the snake's heading does not change under a turn; under a mirror,
+clockwise becomes counter-clockwise, so "turn right" and "turn left" swap.  Together the eight
+transforms form the dihedral group D4, the data augmentation a north-up policy can be trained with
+(a policy that steers correctly is invariant under the turns and swaps its turn buttons under the
+mirror).  Two things in a frame are not symmetric: the background's hexagon pattern (six-fold,
+not four-fold) and the slither wiggle of both turn buttons pressed together, whose phase a
+mirror reverses; neither decides where a pellet is.
+
+A transform is ``(quarter_turns, mirror)``: the frame is first mirrored left to right
+(columns reversed), then turned ``quarter_turns`` times counter-clockwise as displayed
+(``jnp.rot90``).  In world terms, with (dx, dy) a point's offset from the head (x right,
+y down the screen): mirror maps it to (-dx, dy), one quarter turn to (dy, -dx).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+RIGHT, LEFT, ACCELERATE = 0, 1, 2  # the game's button order
+MIRRORED_BUTTONS = (LEFT, RIGHT, ACCELERATE)  # what each button becomes in a mirror image
+NUM_TRANSFORMS = 8
+
+
+def transform_frame(frame: jax.Array, quarter_turns: jax.Array, mirror: jax.Array) -> jax.Array:
+    """One square frame ``[..., S, S]`` mirrored left to right if ``mirror``, then turned
+    ``quarter_turns`` (0-3, may be traced) times counter-clockwise."""
+    if frame.shape[-1] != frame.shape[-2]:
+        raise ValueError(f"frames must be square to turn a quarter: got {frame.shape[-2:]}")
+    frame = jnp.where(mirror, jnp.flip(frame, axis=-1), frame)
+    turns = [lambda f, k=k: jnp.rot90(f, k, axes=(-2, -1)) for k in range(4)]
+    return jax.lax.switch(jnp.asarray(quarter_turns) % 4, turns, frame)
+
+
+def transform_buttons(buttons: jax.Array, mirror: jax.Array) -> jax.Array:
+    """Buttons (or per-button probabilities or logits) ``[..., 3]`` as they read in the
+    mirror image if ``mirror``: right and left swapped."""
+    return jnp.where(mirror, buttons[..., jnp.asarray(MIRRORED_BUTTONS)], buttons)
+
+
+def transform_offsets(dx: jax.Array, dy: jax.Array, quarter_turns: int, mirror: bool):
+    """World offsets (dx, dy) from the head after the transform: the world move that
+    :func:`transform_frame` shows (``quarter_turns`` and ``mirror`` static)."""
+    if mirror:
+        dx = -dx
+    for _ in range(quarter_turns % 4):
+        dx, dy = dy, -dx
+    return dx, dy
+
+
+def random_transforms(key: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
+    """``n`` transforms drawn uniformly from the eight: (quarter_turns ``[n]`` int32, mirror
+    ``[n]`` bool)."""
+    k_turn, k_mirror = jax.random.split(key)
+    return jax.random.randint(k_turn, (n,), 0, 4), jax.random.bernoulli(k_mirror, 0.5, (n,))
+
+
+def augment(key: jax.Array, frames: jax.Array, buttons: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Frames ``[N, S, S]`` and their buttons ``[N, 3]``, each pair under its own random
+    transform (frames turned and mirrored, buttons swapped where mirrored)."""
+    turns, mirror = random_transforms(key, frames.shape[0])
+    return (jax.vmap(transform_frame)(frames, turns, mirror),
+            jax.vmap(transform_buttons)(buttons, mirror))
+
+
+def all_transforms(frame: jax.Array) -> jax.Array:
+    """The eight transforms of one frame ``[S, S]`` -> ``[8, S, S]``, in the order of
+    :data:`TRANSFORMS`."""
+    return jnp.stack([transform_frame(frame, k, m) for k, m in TRANSFORMS])
+
+
+TRANSFORMS = tuple((k, m) for m in (False, True) for k in range(4))
+
+
+def symmetrised_logits(logits: jax.Array) -> jax.Array:
+    """Per-button logits ``[8, 3]`` of one policy on :func:`all_transforms` of a frame, mapped
+    back (the mirrored ones' turn buttons swapped) and averaged: the logits of a policy that is
+    exactly invariant under the game's symmetries."""
+    mirror = jnp.asarray([m for _, m in TRANSFORMS])
+    return jnp.mean(jax.vmap(transform_buttons)(logits, mirror), axis=0)

@@ -1,0 +1,120 @@
+"""The north-up game's symmetries (envs.symmetry) against the game itself: the world turned or
+mirrored about the player's head renders as the turned or mirrored frame, and its physics
+under a mirror swap the turn buttons."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs import symmetry
+from envs.render import wrap_delta, wrap_position
+from envs.slither import Slither, level_params
+
+
+def _transformed_world(game, state, quarter_turns, mirror):
+    """The state with every snake moved to its offsets from the player's head under the
+    transform (positions and headings), the pellets left as they are."""
+    hx, hy = state.x[0, 0], state.y[0, 0]
+    dx, dy = wrap_delta(state.x - hx, game.arena_size), wrap_delta(state.y - hy, game.arena_size)
+    dx, dy = symmetry.transform_offsets(dx, dy, quarter_turns, mirror)
+    ux, uy = symmetry.transform_offsets(jnp.cos(state.heading), jnp.sin(state.heading), quarter_turns, mirror)
+    return state.replace(x=wrap_position(hx + dx, game.arena_size), y=wrap_position(hy + dy, game.arena_size),
+                         heading=jnp.arctan2(uy, ux))
+
+
+@pytest.fixture(scope="module")
+def snakes_only():
+    """A game, its flat level's physics (no background texture) and a state after 30 steps
+    with every pellet removed: the frame holds only snakes, which a turn of the world moves
+    anywhere (pellets live on the grid of cells)."""
+    game, params = Slither(num_opponents=8), level_params("flat")
+    _, state = game.reset(jax.random.PRNGKey(3), params)
+    for t in range(30):
+        _, state, *_ = game.step(jax.random.PRNGKey(100 + t), state, jnp.array([t % 3 == 0, False, False]), params)
+    empty = jnp.zeros_like(state.pellet_value)
+    return game, params, state.replace(pellet_value=empty, pellet_dx=empty, pellet_dy=empty)
+
+
+@pytest.mark.parametrize("quarter_turns,mirror", [(1, False), (2, False), (3, False), (0, True), (1, True), (3, True)])
+def test_a_transformed_world_renders_as_the_transformed_frame(snakes_only, quarter_turns, mirror):
+    game, params, state = snakes_only
+    frame = game.get_obs(state, params)
+    moved = game.get_obs(_transformed_world(game, state, quarter_turns, mirror), params)
+    assert float(jnp.max(frame)) > 0.5  # snakes are in view
+    np.testing.assert_allclose(symmetry.transform_frame(frame, quarter_turns, mirror), moved, atol=1e-4)  # float32 positions near 1000
+    # and not trivially: the frame is not symmetric by itself
+    assert float(jnp.max(jnp.abs(symmetry.transform_frame(frame, quarter_turns, mirror) - frame))) > 0.3
+
+
+def test_a_mirrored_world_turns_the_other_way_on_the_swapped_button(snakes_only):
+    """Right in the world is left in its mirror image: stepping the mirrored world with the
+    buttons swapped moves the player's body to the mirror image of where the original goes."""
+    game, params, state = snakes_only
+    mirrored = _transformed_world(game, state, 0, True)
+    buttons = jnp.array([1.0, 0.0, 1.0])  # turn right, accelerate
+    key = jax.random.PRNGKey(0)
+    after, _, _, _, _ = game.step_state(key, state, buttons, params)
+    after_m, _, _, _, _ = game.step_state(key, mirrored, symmetry.transform_buttons(buttons, True), params)
+    hx, hy = state.x[0, 0], state.y[0, 0]
+    dx = wrap_delta(after.x[0] - hx, game.arena_size)
+    dy = wrap_delta(after.y[0] - hy, game.arena_size)
+    np.testing.assert_allclose(wrap_delta(after_m.x[0] - hx, game.arena_size), -dx, atol=1e-3)
+    np.testing.assert_allclose(wrap_delta(after_m.y[0] - hy, game.arena_size), dy, atol=1e-3)
+    # unswapped, the mirror image turns the other way: the heads part
+    wrong, _, _, _, _ = game.step_state(key, mirrored, buttons, params)
+    assert abs(float(wrap_delta(wrong.y[0, 0] - after_m.y[0, 0], game.arena_size))) > 0.5
+
+
+def test_the_eight_transforms_are_d4():
+    """Distinct on a generic frame, closed under composition (a turn after a mirror is a
+    mirror after the opposite turn), and the symmetrised logits are invariant."""
+    frame = jax.random.uniform(jax.random.PRNGKey(0), (6, 6))
+    images = symmetry.all_transforms(frame)
+    flat = np.asarray(images).reshape(8, -1)
+    assert len({tuple(np.round(r, 6)) for r in flat}) == 8
+    for k, m in symmetry.TRANSFORMS:
+        twice = symmetry.transform_frame(symmetry.transform_frame(frame, k, m), (-k) % 4 if not m else k, m)
+        np.testing.assert_allclose(twice, frame)  # every transform has its inverse among the eight
+    # a policy read through symmetrised_logits gives the same buttons on every transform of the
+    # frame, the turn buttons swapped on the mirrored ones
+    w = jax.random.normal(jax.random.PRNGKey(1), (36, 3))
+
+    def policy(f):
+        return symmetry.symmetrised_logits(symmetry.all_transforms(f).reshape(8, -1) @ w)
+
+    base = policy(frame)
+    assert float(jnp.max(jnp.abs(base[:2] - base[1::-1]))) > 1e-3  # not symmetric in the buttons by accident
+    for k, m in symmetry.TRANSFORMS:
+        np.testing.assert_allclose(policy(symmetry.transform_frame(frame, k, m)),
+                                   symmetry.transform_buttons(base, m), rtol=1e-5, atol=1e-5)
+
+
+def test_augment_swaps_only_the_mirrored_buttons():
+    frames = jnp.broadcast_to(jnp.arange(16.0).reshape(4, 4), (64, 4, 4))
+    buttons = jnp.broadcast_to(jnp.array([1.0, 0.0, 1.0]), (64, 3))
+    out_frames, out_buttons = symmetry.augment(jax.random.PRNGKey(0), frames, buttons)
+    mirrored = np.asarray(out_buttons[:, 0] == 0.0)
+    assert 10 < mirrored.sum() < 54
+    np.testing.assert_array_equal(np.asarray(out_buttons)[mirrored], [[0.0, 1.0, 1.0]] * int(mirrored.sum()))
+    for f, m in zip(np.asarray(out_frames), mirrored):  # each frame is one of the four turns of its mirror
+        source = np.asarray(frames[0])[:, ::-1] if m else np.asarray(frames[0])
+        assert any(np.array_equal(f, np.rot90(source, k)) for k in range(4))
+
+
+def test_frames_must_be_square():
+    with pytest.raises(ValueError, match="square"):
+        symmetry.transform_frame(jnp.zeros((4, 6)), 1, False)
+
+
+def test_quarter_turn_offsets_match_rot90():
+    """transform_offsets' convention against numpy's rot90 on an image with one lit pixel."""
+    n = 5
+    image = np.zeros((n, n))
+    r, c = 1, 4  # dy = r - 2, dx = c - 2 from the centre
+    image[r, c] = 1.0
+    for k in range(4):
+        for m in (False, True):
+            dx, dy = symmetry.transform_offsets(c - 2.0, r - 2.0, k, m)
+            turned = np.asarray(symmetry.transform_frame(jnp.asarray(image), k, m))
+            assert turned[int(dy) + 2, int(dx) + 2] == 1.0, (k, m)
