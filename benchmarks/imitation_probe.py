@@ -19,7 +19,20 @@ gives the same camera with the level's own pellets).
 It measures how much of the steering a pixel policy of this size can learn with the answers
 given, which bounds what reinforcement from the same frames can reach.
 
-    .venv/bin/python benchmarks/imitation_probe.py [--level thesis] [--camera north] [--augment d4] [--out FILE]
+With `--turn read-heading` the frames are first turned so that the player's heading points up the
+screen, by the heading a second network of the same kind reads off each frame (trained first, as
+`--target heading`, for `--heading-updates`); the cloned policy learns and plays on the turned
+frames (the heading read from the pixels at play too): a north-up policy with the turn to its
+heading built in.
+
+With `--target heading` the same network instead learns the player's heading (cos, sin; MSE on
+the logits of two buttons scaled by 10, as the policy head starts 100 times smaller) from the
+same frames, and is scored on the frames of 32 other privileged games (seeds 5000-5031): R² of
+(cos, sin) and the median and 90th percentile of the angle's error. It asks whether the frame
+shows the heading that a north-up policy must read before it steers.
+
+    .venv/bin/python benchmarks/imitation_probe.py [--level thesis] [--camera north] [--augment d4]
+        [--target buttons|heading] [--turn read-heading] [--out FILE]
 
 Ends with one JSON line.
 """
@@ -27,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import sys
 import time
 
@@ -35,9 +49,10 @@ from common import emit
 EXPLORE = 0.2  # the share of the privileged policy's steps replaced by random turns
 
 
-def collect(game, env_params, games: int, steps: int, size: int):
-    """Frames `[N, size, size]` of the privileged games' live steps and the buttons the
-    privileged policy chose on each `[N, 3]` (executed or not)."""
+def collect(game, env_params, games: int, steps: int, size: int, first_seed: int = 0):
+    """Frames `[N, size, size]` of the privileged games' live steps (seeds `first_seed`, ...),
+    the buttons the privileged policy chose on each `[N, 3]` (executed or not) and the player's
+    heading `[N]`."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -59,17 +74,63 @@ def collect(game, env_params, games: int, steps: int, size: int):
                 label, _ = privileged.step(k_policy, None, obs, state, env_params)
                 turns = (jax.random.uniform(k_turn, (3,)) < 0.5).astype(jnp.float32) * jnp.array([1.0, 1.0, 0.0])
                 executed = jnp.where(jax.random.uniform(k_explore) < EXPLORE, turns, label)
-                frame = resize_obs(obs, size)
+                frame, heading = resize_obs(obs, size), state.heading[0]
                 obs, state, _, term, trunc, _ = game.step(k_env, state, executed, env_params)
-                return (state, obs, key, alive & ~(term | trunc)), (frame, label, alive)
+                return (state, obs, key, alive & ~(term | trunc)), (frame, label, heading, alive)
 
             return jax.lax.scan(body, (state, obs, k_run, jnp.array(True)), None, length=steps)[1]
 
         return jax.vmap(one)(keys)
 
-    frames, labels, alive = (np.asarray(x) for x in run(jax.vmap(jax.random.PRNGKey)(jnp.arange(games))))
+    keys = jax.vmap(jax.random.PRNGKey)(first_seed + jnp.arange(games))
+    frames, labels, heading, alive = (np.asarray(x) for x in run(keys))
     on = alive.reshape(-1)
-    return frames.reshape(-1, size, size)[on], labels.reshape(-1, 3)[on]
+    return frames.reshape(-1, size, size)[on], labels.reshape(-1, 3)[on], heading.reshape(-1)[on]
+
+
+HEADING_SCALE = 10.0  # the policy head's kernel starts at 0.01 of its usual scale
+HEADING_TEST_SEED = 5000
+
+
+def heading_scores(predicted, heading):
+    """R² of (cos, sin) and the median / 90th percentile of the angle's absolute error (degrees)."""
+    import numpy as np
+
+    target = np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    r2 = 1.0 - np.sum((predicted - target) ** 2) / np.sum((target - target.mean(0)) ** 2)
+    error = np.degrees(np.abs(np.angle(np.exp(1j * (np.arctan2(predicted[:, 1], predicted[:, 0]) - heading)))))
+    return {"r2": float(r2), "median_error_deg": float(np.median(error)),
+            "p90_error_deg": float(np.percentile(error, 90))}
+
+
+def heading_of(arch, params, frames):
+    """The heading network's (cos, sin) of frames `[N, S, S]`."""
+    from cdrl.training import ppo
+
+    return HEADING_SCALE * ppo.policy_value(arch, params, frames)[0][..., :2]
+
+
+def turned_policy(arch):
+    """(init, step) for `play` with params (heading network, policy): the frame turned by the
+    heading read off it, then the policy's buttons."""
+    import jax.numpy as jnp
+
+    from cdrl.data.frames import resize_obs
+    from cdrl.training import ppo
+    from envs import symmetry
+
+    def init(key, params):
+        del key, params
+        return jnp.zeros((), jnp.float32)
+
+    def step(key, state, obs, params):
+        del key
+        frame = resize_obs(obs, arch.image_size)[None]
+        turned = symmetry.turn_to_heading(frame, heading_of(arch, params[0], frame))
+        logits, _ = ppo.policy_value(arch, params[1], turned)
+        return (logits[0] > 0.0).astype(jnp.float32), state
+
+    return init, step
 
 
 def symmetrised_policy(arch):
@@ -98,6 +159,12 @@ def main(argv=None) -> int:
     parser.add_argument("--camera", default=None, choices=("north", "heading"),
                         help="override the level's camera (default: the level's own)")
     parser.add_argument("--augment", default="none", choices=("none", "d4"), help="minibatch augmentation")
+    parser.add_argument("--target", default="buttons", choices=("buttons", "heading"),
+                        help="what the network learns: the privileged buttons, or the player's heading")
+    parser.add_argument("--turn", default="none", choices=("none", "read-heading"),
+                        help="turn every frame so that the heading read off it points up (default: none)")
+    parser.add_argument("--heading-updates", type=int, default=4000,
+                        help="--turn read-heading: updates of the heading network (default 4000)")
     parser.add_argument("--games", type=int, default=256, help="privileged training games (default 256)")
     parser.add_argument("--steps", type=int, default=200, help="steps a training game (default 200)")
     parser.add_argument("--updates", type=int, default=8000, help="Adam updates (default 8000)")
@@ -107,11 +174,16 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the network's initialisation and minibatches")
     parser.add_argument("--out", default=None, help="also write the JSON result to this file")
     args = parser.parse_args(argv)
+    if args.target == "heading" and args.augment != "none":
+        parser.error("--target heading takes no --augment (a turned frame shows another heading)")
+    if args.turn != "none" and (args.target != "buttons" or args.augment != "none"):
+        parser.error("--turn read-heading is for --target buttons without --augment")
     if args.updates % args.eval_every:
         parser.error(f"--updates ({args.updates}) must be a multiple of --eval-every ({args.eval_every})")
 
     import jax
     import jax.numpy as jnp
+    import numpy as np
     import optax
 
     from cdrl.evaluation.play import EVAL_SEED, compare_policies
@@ -126,41 +198,71 @@ def main(argv=None) -> int:
     env_params = level_params(args.level)
     arch = PRESETS["small"]
     start = time.time()
-    frames, labels = collect(game, env_params, args.games, args.steps, arch.image_size)
+    frames, labels, heading = collect(game, env_params, args.games, args.steps, arch.image_size)
     arch = dataclasses.replace(arch, obs_mean=float(frames.mean()), obs_std=float(frames.std()))
+    if args.target == "heading":
+        labels = np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        test_frames, _, test_heading = collect(game, env_params, 32, args.steps, arch.image_size, HEADING_TEST_SEED)
     frames, labels = jnp.asarray(frames), jnp.asarray(labels)
     collect_s = time.time() - start
 
     opt = optax.adam(args.lr)
-    params = ppo.init_params(arch, jax.random.PRNGKey(args.seed))
-    opt_state = opt.init(params)
 
-    def loss_fn(params, x, y):
+    def heading_loss(params, x, y):
+        return jnp.mean(jnp.square(heading_of(arch, params, x) - y))
+
+    def buttons_loss(params, x, y):
         logits, _ = ppo.policy_value(arch, params, x)
         return optax.sigmoid_binary_cross_entropy(logits, y).mean()
 
-    @jax.jit
-    def train(params, opt_state, key):
-        def body(c, k):
-            params, opt_state = c
-            k_draw, k_aug = jax.random.split(k)
-            idx = jax.random.randint(k_draw, (args.batch,), 0, frames.shape[0])
-            x, y = frames[idx], labels[idx]
-            if args.augment == "d4":
-                x, y = symmetry.augment(k_aug, x, y)
-            loss, grads = jax.value_and_grad(loss_fn)(params, x, y)
-            updates, opt_state = opt.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), loss
+    def trainer(frames, labels, loss_fn, steps):
+        """A jitted `steps` Adam updates on random minibatches of (frames, labels)."""
+        @jax.jit
+        def train(params, opt_state, key):
+            def body(c, k):
+                params, opt_state = c
+                k_draw, k_aug = jax.random.split(k)
+                idx = jax.random.randint(k_draw, (args.batch,), 0, frames.shape[0])
+                x, y = frames[idx], labels[idx]
+                if args.augment == "d4":
+                    x, y = symmetry.augment(k_aug, x, y)
+                loss, grads = jax.value_and_grad(loss_fn)(params, x, y)
+                updates, opt_state = opt.update(grads, opt_state, params)
+                return (optax.apply_updates(params, updates), opt_state), loss
 
-        (params, opt_state), losses = jax.lax.scan(body, (params, opt_state), jax.random.split(key, args.eval_every))
-        return params, opt_state, jnp.mean(losses)
+            (params, opt_state), losses = jax.lax.scan(body, (params, opt_state), jax.random.split(key, steps))
+            return params, opt_state, jnp.mean(losses)
+
+        return train
+
+    read = jax.jit(functools.partial(heading_of, arch))
+    if args.turn == "read-heading":
+        xy = jnp.asarray(np.stack([np.cos(heading), np.sin(heading)], axis=1))
+        reader = ppo.init_params(arch, jax.random.PRNGKey(500 + args.seed))
+        reader, _, reader_loss = trainer(frames, xy, heading_loss, args.heading_updates)(
+            reader, opt.init(reader), jax.random.PRNGKey(2000 + args.seed))
+        frames = jnp.concatenate([symmetry.turn_to_heading(frames[i:i + 512], read(reader, frames[i:i + 512]))
+                                  for i in range(0, frames.shape[0], 512)])
+    params = ppo.init_params(arch, jax.random.PRNGKey(args.seed))
+    opt_state = opt.init(params)
+    train = trainer(frames, labels, heading_loss if args.target == "heading" else buttons_loss, args.eval_every)
 
     key = jax.random.PRNGKey(1000 + args.seed)
     curve = []
     for done in range(args.eval_every, args.updates + 1, args.eval_every):
         key, k = jax.random.split(key)
         params, opt_state, loss = train(params, opt_state, k)
-        policies = {"cloned": ppo.ppo_policy(arch, params)}
+        if args.target == "heading":
+            predicted = np.concatenate([np.asarray(read(params, test_frames[i:i + 512]))
+                                        for i in range(0, len(test_frames), 512)])
+            point = {"updates": done, "train_mse": float(loss), **heading_scores(predicted, test_heading)}
+            print(point, flush=True)
+            curve.append(point)
+            continue
+        if args.turn == "read-heading":
+            policies = {"cloned_turned": (*turned_policy(arch), (reader, params))}
+        else:
+            policies = {"cloned": ppo.ppo_policy(arch, params)}
         if args.augment == "d4":
             policies["cloned_symmetrised"] = (*symmetrised_policy(arch), params)
         last = done == args.updates
@@ -169,11 +271,17 @@ def main(argv=None) -> int:
                  **{name: round(row["mean_return"], 3) for name, row in rows.items() if name in policies}}
         print(point, flush=True)
         curve.append(point)
-    result = {"level": args.level, "camera": game.spec.camera, "augment": args.augment, "games": args.games,
-              "frames": int(frames.shape[0]), "turn_rates": [float(r) for r in labels.mean(0)],
-              "updates": args.updates, "batch": args.batch, "lr": args.lr, "seed": args.seed,
-              "collect_s": round(collect_s, 1), "seconds": round(time.time() - start, 1), "curve": curve,
-              "held_out": rows}
+    result = {"level": args.level, "camera": game.spec.camera, "target": args.target, "augment": args.augment,
+              "games": args.games, "frames": int(frames.shape[0]), "updates": args.updates, "batch": args.batch,
+              "lr": args.lr, "seed": args.seed, "collect_s": round(collect_s, 1),
+              "seconds": round(time.time() - start, 1), "curve": curve}
+    if args.turn == "read-heading":
+        result.update(turn=args.turn, heading_updates=args.heading_updates, heading_train_mse=float(reader_loss))
+    if args.target == "heading":
+        result["held_out_frames"] = int(len(test_frames))
+    else:
+        result["turn_rates"] = [float(r) for r in labels.mean(0)]
+        result["held_out"] = rows
     emit(result, args.out)
     return 0
 

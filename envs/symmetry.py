@@ -3,8 +3,9 @@ they map to.
 
 With the ``north`` camera the player's head is the centre of every frame and the arena is a
 square torus, so turning the whole world by a quarter turn about the head, or mirroring it, gives
-another world the game could be in, and its frame is the original frame turned or mirrored (the
-observation grid is symmetric about its centre, so pixel centres land on pixel centres).  What a
+another world the game could be in (but for the grid of cells the pellets keep to), and its
+frame is the original frame turned or mirrored (the observation grid is symmetric about its
+centre, so pixel centres land on pixel centres).  What a
 button does relative to the snake's heading does not change under a turn; under a mirror,
 clockwise becomes counter-clockwise, so "turn right" and "turn left" swap.  Together the eight
 transforms form the dihedral group D4, the data augmentation a north-up policy can be trained with
@@ -12,6 +13,9 @@ transforms form the dihedral group D4, the data augmentation a north-up policy c
 mirror).  Two things in a frame are not symmetric: the background's hexagon pattern (six-fold,
 not four-fold) and the slither wiggle of both turn buttons pressed together, whose phase a
 mirror reverses; neither decides where a pellet is.
+
+:func:`turn_to_heading` turns a north-up frame by any angle, to the player's heading: the
+``heading`` camera's view of the same world (bilinear, within the disc the north-up frame holds).
 
 A transform is ``(quarter_turns, mirror)``: the frame is first mirrored left to right
 (columns reversed), then turned ``quarter_turns`` times counter-clockwise as displayed
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import jax.scipy.ndimage
 
 RIGHT, LEFT, ACCELERATE = 0, 1, 2  # the game's button order
 MIRRORED_BUTTONS = (LEFT, RIGHT, ACCELERATE)  # what each button becomes in a mirror image
@@ -85,3 +90,22 @@ def symmetrised_logits(logits: jax.Array) -> jax.Array:
     exactly invariant under the game's symmetries."""
     mirror = jnp.asarray([m for _, m in TRANSFORMS])
     return jnp.mean(jax.vmap(transform_buttons)(logits, mirror), axis=0)
+
+
+def turn_to_heading(frames, heading_xy):
+    """North-up frames ``[N, S, S]`` turned (bilinear) so that the direction ``heading_xy``
+    ``[N, 2]`` (x right, y down the screen; any length) points up: the view the ``heading``
+    camera shows, but for the corners the north-up frame does not hold (filled with its
+    nearest edge pixel).  The output pixel at offsets (right q_x, down q_y) from the centre
+    samples the input at q_x (-s, c) + q_y (-c, -s), with (c, s) the unit heading
+    (:func:`envs.render.view_axes`)."""
+    size = frames.shape[-1]
+    q = jnp.arange(size, dtype=jnp.float32) - (size - 1) / 2
+    qy, qx = jnp.meshgrid(q, q, indexing="ij")
+
+    def one(frame, xy):
+        c, s = xy / jnp.maximum(jnp.linalg.norm(xy), 1e-6)
+        rows, cols = c * qx - s * qy + (size - 1) / 2, -s * qx - c * qy + (size - 1) / 2
+        return jax.scipy.ndimage.map_coordinates(frame, [rows, cols], order=1, mode="nearest")
+
+    return jax.vmap(one)(frames, heading_xy)

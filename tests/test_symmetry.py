@@ -9,6 +9,7 @@ import pytest
 
 from envs import symmetry
 from envs.render import wrap_delta, wrap_position
+from cdrl.data.frames import resize_obs
 from envs.slither import Slither, level_params
 
 
@@ -42,7 +43,8 @@ def test_a_transformed_world_renders_as_the_transformed_frame(snakes_only, quart
     frame = game.get_obs(state, params)
     moved = game.get_obs(_transformed_world(game, state, quarter_turns, mirror), params)
     assert float(jnp.max(frame)) > 0.5  # snakes are in view
-    np.testing.assert_allclose(symmetry.transform_frame(frame, quarter_turns, mirror), moved, atol=1e-4)  # float32 positions near 1000
+    # float32 positions near 1000 move a disc edge by up to 1e-4
+    np.testing.assert_allclose(symmetry.transform_frame(frame, quarter_turns, mirror), moved, atol=1e-4)
     # and not trivially: the frame is not symmetric by itself
     assert float(jnp.max(jnp.abs(symmetry.transform_frame(frame, quarter_turns, mirror) - frame))) > 0.3
 
@@ -118,3 +120,26 @@ def test_quarter_turn_offsets_match_rot90():
             dx, dy = symmetry.transform_offsets(c - 2.0, r - 2.0, k, m)
             turned = np.asarray(symmetry.transform_frame(jnp.asarray(image), k, m))
             assert turned[int(dy) + 2, int(dx) + 2] == 1.0, (k, m)
+
+
+def test_turn_to_heading_gives_the_heading_cameras_view():
+    """A north-up frame turned by the player's heading is the heading camera's frame of the same
+    state (64 x 64, inside the disc both hold; bilinear resampling blurs a little), and turning by
+    the mirrored heading is not."""
+    params = level_params("thesis")
+    north, heading_up = Slither(), Slither(camera="heading")
+    _, state = north.reset(jax.random.PRNGKey(5), params)
+    for t in range(20):
+        _, state, *_ = north.step(jax.random.PRNGKey(t), state, jnp.array([t % 4 == 0, 0.0, 0.0]), params)
+    frame = resize_obs(north.get_obs(state, params), 64)
+    expected = np.asarray(resize_obs(heading_up.get_obs(state, params), 64))
+    c, s = jnp.cos(state.heading[0]), jnp.sin(state.heading[0])
+    q = np.arange(64) - 31.5
+    disc = np.hypot(*np.meshgrid(q, q)) < 28
+
+    def error(xy):
+        return float(np.abs(np.asarray(symmetry.turn_to_heading(frame[None], jnp.asarray([xy]))[0]) - expected)[disc].mean())
+
+    assert error([c, s]) < 0.006
+    assert error([3.0 * c, 3.0 * s]) < 0.006  # any length
+    assert error([c, -s]) > 0.03  # the north-up frame itself is 0.049 away
