@@ -135,6 +135,8 @@ LEVELS: dict[str, dict[str, float]] = {
     "visible": {},
     # the visible level seen by a camera that turns with the player (see LEVEL_GAMES)
     "heading": {},
+    # the thesis level itself seen by that camera, its pellets as small (see LEVEL_GAMES)
+    "thesis-heading": {},
 }
 
 # Static drawing options of the levels that have any (`Slither` arguments, beside the level's
@@ -152,6 +154,9 @@ LEVEL_GAMES: dict[str, dict[str, float | str]] = {
     # policy from 51 200 frames of 64 x 64 plays +8.6 on held-out games here and +3.1 with the
     # north-up camera (docs/controller.md).
     "heading": {"pellet_radius": 6.0, "camera": "heading"},
+    # the thesis level, pellets and all, heading up the screen: what a north-up frame turned by
+    # the heading read off it shows (`envs.symmetry.turn_to_heading`)
+    "thesis-heading": {"camera": "heading"},
 }
 
 

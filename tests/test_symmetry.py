@@ -138,7 +138,8 @@ def test_turn_to_heading_gives_the_heading_cameras_view():
     disc = np.hypot(*np.meshgrid(q, q)) < 28
 
     def error(xy):
-        return float(np.abs(np.asarray(symmetry.turn_to_heading(frame[None], jnp.asarray([xy]))[0]) - expected)[disc].mean())
+        turned = np.asarray(symmetry.turn_to_heading(frame[None], jnp.asarray([xy]))[0])
+        return float(np.abs(turned - expected)[disc].mean())
 
     assert error([c, s]) < 0.006
     assert error([3.0 * c, 3.0 * s]) < 0.006  # any length
