@@ -15,7 +15,8 @@ not four-fold) and the slither wiggle of both turn buttons pressed together, who
 mirror reverses; neither decides where a pellet is.
 
 :func:`turn_to_heading` turns a north-up frame by any angle, to the player's heading: the
-``heading`` camera's view of the same world (bilinear, within the disc the north-up frame holds).
+``heading`` camera's view of the same world (bilinear, within the disc the north-up frame holds);
+:func:`heading_from_flow` reads that heading off two consecutive frames, from the pixels alone.
 
 A transform is ``(quarter_turns, mirror)``: the frame is first mirrored left to right
 (columns reversed), then turned ``quarter_turns`` times counter-clockwise as displayed
@@ -109,3 +110,29 @@ def turn_to_heading(frames, heading_xy):
         return jax.scipy.ndimage.map_coordinates(frame, [rows, cols], order=1, mode="nearest")
 
     return jax.vmap(one)(frames, heading_xy)
+
+
+def heading_from_flow(previous: jax.Array, frame: jax.Array, inner_radius: float = 12.0) -> jax.Array:
+    """The player's heading ``[..., 2]`` (x right, y down; not normalised) read off two
+    consecutive north-up frames ``[..., S, S]`` without any learning: the camera follows the head,
+    so the world seen around it moves by minus the head's step, and the global optical flow
+    (Lucas-Kanade: one translation fitted to the brightness change by least squares over the
+    annulus ``inner_radius`` < r < S / 2 - 2 pixels, which leaves out the player's own body near
+    the centre) points against the heading.  Feed it to :func:`turn_to_heading`."""
+    size = frame.shape[-1]
+    q = jnp.arange(size, dtype=jnp.float32) - (size - 1) / 2
+    r = jnp.hypot(q[:, None], q[None, :])
+    mask = ((r > inner_radius) & (r < size / 2 - 2)).astype(jnp.float32)
+    mean = (previous + frame) / 2
+    gy, gx = jnp.gradient(mean, axis=-2), jnp.gradient(mean, axis=-1)
+    it = frame - previous
+
+    def total(x):
+        return jnp.sum(mask * x, axis=(-2, -1))
+
+    axx, axy, ayy = total(gx * gx), total(gx * gy), total(gy * gy)
+    bx, by = -total(gx * it), -total(gy * it)
+    det = axx * ayy - axy * axy + 1e-12
+    u = (ayy * bx - axy * by) / det
+    v = (axx * by - axy * bx) / det
+    return -jnp.stack([u, v], axis=-1)
