@@ -5,9 +5,9 @@ With the ``north`` camera the player's head is the centre of every frame and the
 square torus, so turning the whole world by a quarter turn about the head, or mirroring it, gives
 another world the game could be in (but for the grid of cells the pellets keep to), and its
 frame is the original frame turned or mirrored (the observation grid is symmetric about its
-centre, so pixel centres land on pixel centres).  What a
-button does relative to the snake's heading does not change under a turn; under a mirror,
-clockwise becomes counter-clockwise, so "turn right" and "turn left" swap.  Together the eight
+centre, so pixel centres land on pixel centres).  What a button does relative to the snake's
+heading does not change under a turn; under a mirror, clockwise becomes counter-clockwise, so
+"turn right" and "turn left" swap.  Together the eight
 transforms form the dihedral group D4, the data augmentation a north-up policy can be trained with
 (a policy that steers correctly is invariant under the turns and swaps its turn buttons under the
 mirror).  Two things in a frame are not symmetric: the background's hexagon pattern (six-fold,
@@ -32,7 +32,7 @@ import jax.scipy.ndimage
 
 RIGHT, LEFT, ACCELERATE = 0, 1, 2  # the game's button order
 MIRRORED_BUTTONS = (LEFT, RIGHT, ACCELERATE)  # what each button becomes in a mirror image
-NUM_TRANSFORMS = 8
+TRANSFORMS = tuple((k, m) for m in (False, True) for k in range(4))  # the eight, (quarter_turns, mirror)
 
 
 def transform_frame(frame: jax.Array, quarter_turns: jax.Array, mirror: jax.Array) -> jax.Array:
@@ -80,9 +80,6 @@ def all_transforms(frame: jax.Array) -> jax.Array:
     """The eight transforms of one frame ``[S, S]`` -> ``[8, S, S]``, in the order of
     :data:`TRANSFORMS`."""
     return jnp.stack([transform_frame(frame, k, m) for k, m in TRANSFORMS])
-
-
-TRANSFORMS = tuple((k, m) for m in (False, True) for k in range(4))
 
 
 def symmetrised_logits(logits: jax.Array) -> jax.Array:

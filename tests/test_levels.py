@@ -42,7 +42,8 @@ def test_contrast_blends_the_background_toward_its_mean(background_only):
 def test_levels_are_named_overrides():
     assert LEVELS["thesis"] == {}
     assert [RunConfig(level=name).level for name in LEVELS] == list(LEVELS)  # one list of levels: the game's
-    with pytest.raises(ValueError, match="level must be one of thesis, flat, sparse, clean, visible, heading; got 'hard'"):
+    listed = "thesis, flat, sparse, clean, visible, heading, thesis-heading"
+    with pytest.raises(ValueError, match=f"level must be one of {listed}; got 'hard'"):
         RunConfig(level="hard")
     clean = level_params("clean")
     assert float(clean.background_contrast) == 0.0 and float(clean.pellet_init_fill) < 0.2

@@ -1,15 +1,16 @@
 """The north-up game's symmetries (envs.symmetry) against the game itself: the world turned or
-mirrored about the player's head renders as the turned or mirrored frame, and its physics
-under a mirror swap the turn buttons."""
+mirrored about the player's head renders as the turned or mirrored frame, its physics under a
+mirror swap the turn buttons, a frame turned by the heading is the heading camera's, and the
+optical flow of two frames points along the heading."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cdrl.data.frames import resize_obs
 from envs import symmetry
 from envs.render import wrap_delta, wrap_position
-from cdrl.data.frames import resize_obs
 from envs.slither import Slither, level_params
 
 
