@@ -58,7 +58,7 @@ def collect(game, env_params, games: int, steps: int, size: int, first_seed: int
     import numpy as np
 
     from cdrl.data.frames import resize_obs
-    from envs.policies import privileged_policy
+    from envs.policies import privileged_policy, random_turns_instead
 
     privileged = privileged_policy(game)
 
@@ -70,10 +70,9 @@ def collect(game, env_params, games: int, steps: int, size: int, first_seed: int
 
             def body(c, _):
                 state, obs, key, alive = c
-                key, k_policy, k_turn, k_explore, k_env = jax.random.split(key, 5)
+                key, k_policy, k_explore, k_env = jax.random.split(key, 4)
                 label, _ = privileged.step(k_policy, None, obs, state, env_params)
-                turns = (jax.random.uniform(k_turn, (3,)) < 0.5).astype(jnp.float32) * jnp.array([1.0, 1.0, 0.0])
-                executed = jnp.where(jax.random.uniform(k_explore) < EXPLORE, turns, label)
+                executed = random_turns_instead(k_explore, label, EXPLORE)
                 frame, heading = resize_obs(obs, size), state.heading[0]
                 obs, state, _, term, trunc, _ = game.step(k_env, state, executed, env_params)
                 return (state, obs, key, alive & ~(term | trunc)), (frame, label, heading, alive)

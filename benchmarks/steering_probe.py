@@ -17,7 +17,9 @@ given, and so whether its features or its learning rule limit it.
     .venv/bin/python benchmarks/steering_probe.py RUN_DIR [--games 128] [--out FILE]
 
 RUN_DIR: a controller variant's run on the built-in game (an offline world model, `--controller
-none`, or an online run). Ends with one JSON line.
+none`, or an online run). Ends with one JSON line. (The results in benchmarks/results/ were made
+before the exploration draw moved into `envs.policies.random_turns_instead`; a re-run draws other
+exploratory steps.)
 """
 from __future__ import annotations
 
@@ -55,7 +57,7 @@ def collect(variant, params, game, env_params, games: int, max_steps: int):
 
     from cdrl.data.frames import resize_obs
     from cdrl.models.base import StepInput
-    from envs.policies import privileged_policy
+    from envs.policies import privileged_policy, random_turns_instead
 
     privileged, size = privileged_policy(game), variant.arch.image_size
 
@@ -67,12 +69,11 @@ def collect(variant, params, game, env_params, games: int, max_steps: int):
 
             def body(c, _):
                 state, obs, carry, action, first, key, alive = c
-                key, k_policy, k_turn, k_explore, k_env = jax.random.split(key, 5)
+                key, k_policy, k_explore, k_env = jax.random.split(key, 4)
                 frame = resize_obs(obs, size)[None]
                 carry, _ = variant.step(params, carry, StepInput(obs=frame, action=action[None], is_first=first))
                 label, _ = privileged.step(k_policy, None, obs, state, env_params)
-                turns = (jax.random.uniform(k_turn, (3,)) < 0.5).astype(jnp.float32) * jnp.array([1.0, 1.0, 0.0])
-                executed = jnp.where(jax.random.uniform(k_explore) < EXPLORE, turns, label)
+                executed = random_turns_instead(k_explore, label, EXPLORE)
                 obs, state, _, term, trunc, _ = game.step(k_env, state, executed, env_params)
                 nxt = (state, obs, carry, executed, jnp.zeros((1,), bool), key, alive & ~(term | trunc))
                 return nxt, (variant.features(carry)[0], label, alive, frame[0])

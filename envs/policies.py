@@ -103,6 +103,15 @@ def never_accelerate_step(key: jax.Array, state: UniformState, obs: Any = None):
     return jnp.concatenate([u, jnp.zeros((1,), jnp.float32)]), state
 
 
+def random_turns_instead(key: jax.Array, buttons: jax.Array, share) -> jax.Array:
+    """``buttons`` [3], or with probability ``share`` random turns in their place (right and left
+    each pressed with probability 1/2, accelerate never; 0/1 floats): the exploration that puts
+    recoveries into a scripted policy's data."""
+    k_turn, k_swap = jax.random.split(key)
+    turns = (jax.random.uniform(k_turn, (3,)) < 0.5).astype(jnp.float32) * jnp.array([1.0, 1.0, 0.0])
+    return jnp.where(jax.random.uniform(k_swap) < share, turns, buttons)
+
+
 @dataclasses.dataclass(frozen=True)
 class Policy:
     """A named pure policy: ``init(key)`` and ``step(key, state, obs)``; a ``privileged``

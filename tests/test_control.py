@@ -390,3 +390,17 @@ def test_the_benchmark_merges_result_files_and_names_a_bad_one(tmp_path):
                           str(tmp_path / "broken.json"), "--out", str(tmp_path / "never.json")],
                          capture_output=True, text=True)
     assert bad.returncode != 0 and "broken.json" in bad.stderr and not (tmp_path / "never.json").exists()
+
+
+def test_random_turns_instead_replaces_a_share_with_random_turns():
+    from envs.policies import random_turns_instead
+
+    buttons = jnp.array([1.0, 0.0, 1.0])
+    keys = jax.random.split(jax.random.PRNGKey(0), 4000)
+    out = np.asarray(jax.vmap(lambda k: random_turns_instead(k, buttons, 0.2))(keys))
+    replaced = np.any(out != np.asarray(buttons), axis=1) | (out[:, 2] == 0.0)
+    assert abs(replaced.mean() - 0.2) < 0.03
+    assert np.all(out[replaced, 2] == 0.0)  # random turns never accelerate
+    assert abs(out[replaced, :2].mean() - 0.5) < 0.06 and set(np.unique(out)) <= {0.0, 1.0}
+    np.testing.assert_array_equal(jax.vmap(lambda k: random_turns_instead(k, buttons, 0.0))(keys[:50]),
+                                  np.broadcast_to(buttons, (50, 3)))
