@@ -33,7 +33,7 @@ def snakes_only():
     game, params = Slither(num_opponents=8), level_params("flat")
     _, state = game.reset(jax.random.PRNGKey(3), params)
     for t in range(30):
-        _, state, *_ = game.step(jax.random.PRNGKey(100 + t), state, jnp.array([t % 3 == 0, False, False]), params)
+        _, state, *_ = game.jit.step(jax.random.PRNGKey(100 + t), state, jnp.array([t % 3 == 0, False, False]), params)
     empty = jnp.zeros_like(state.pellet_value)
     return game, params, state.replace(pellet_value=empty, pellet_dx=empty, pellet_dy=empty)
 
@@ -83,6 +83,7 @@ def test_the_eight_transforms_are_d4():
     # frame, the turn buttons swapped on the mirrored ones
     w = jax.random.normal(jax.random.PRNGKey(1), (36, 3))
 
+    @jax.jit
     def policy(f):
         return symmetry.symmetrised_logits(symmetry.all_transforms(f).reshape(8, -1) @ w)
 
