@@ -109,9 +109,11 @@ def heading_of(arch, params, frames):
     return HEADING_SCALE * ppo.policy_value(arch, params, frames)[0][..., :2]
 
 
+@functools.lru_cache(maxsize=4)
 def turned_policy(arch):
     """(init, step) for `play` with params (heading network, policy): the frame turned by the
-    heading read off it, then the policy's buttons."""
+    heading read off it, then the policy's buttons (one pair per architecture, so every
+    evaluation reuses one compiled program)."""
     import jax.numpy as jnp
 
     from cdrl.data.frames import resize_obs
@@ -132,8 +134,10 @@ def turned_policy(arch):
     return init, step
 
 
+@functools.lru_cache(maxsize=4)
 def symmetrised_policy(arch):
-    """(init, step) for `play`: the network's logits averaged over the eight symmetric views."""
+    """(init, step) for `play`: the network's logits averaged over the eight symmetric views (one
+    pair per architecture)."""
     import jax.numpy as jnp
 
     from cdrl.data.frames import resize_obs
