@@ -51,6 +51,8 @@ def main(argv=None) -> int:
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
                         help="configurations to run, in this order (default: all)")
     parser.add_argument("--level", default="thesis", help="the game's level (envs.slither.LEVELS; default: thesis)")
+    parser.add_argument("--preset", default=None,
+                        help="the architecture preset (cdrl.models.PRESETS; default: the budget's, small for --full)")
     parser.add_argument("--work-dir", default=None, help="where the runs go (default: a temporary directory)")
     parser.add_argument("--out", default=None, help="also write the JSON result to this file")
     parser.add_argument("--figure", default=None, help="draw the learning curves into this PNG file")
@@ -66,7 +68,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR")
                       or tempfile.mkdtemp(prefix="cdrl-controller-xla-"))
     budget = BUDGETS["full" if args.full else "tiny" if args.quick else "default"]
-    budget = dataclasses.replace(budget, level=args.level)
+    budget = dataclasses.replace(budget, level=args.level, preset=args.preset or budget.preset)
     work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
     load_start = os.getloadavg()[0]
 

@@ -1,5 +1,7 @@
 """The networks against their definitions: layer sizes, transposed-convolution semantics,
 the LSTM against the thesis's equations, initialisation scales, errors on bad configs."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -139,7 +141,7 @@ def _assert_same_function(mine, xla, x, k, seed):
 @pytest.mark.parametrize("size,kernel,stride,padding,batch,c_in",
                          [(150, 4, 2, 2, 2, 3), (7, 4, 2, 1, 2, 3), (5, 5, 1, 0, 2, 3), (9, 3, 2, 1, 2, 3),
                           (8, 4, 4, 0, 2, 3), (12, 4, 2, 1, 20, 3), (15, 4, 2, 2, 2, 1), (7, 4, 2, 1, 2, 1),
-                          (12, 4, 2, 1, 1, 3), (7, 4, 2, 1, 1, 3)])
+                          (12, 4, 2, 1, 1, 3), (7, 4, 2, 1, 1, 3), (36, 8, 4, 2, 2, 1)])
 def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch, c_in):
     rng = np.random.default_rng(1)
     x = jnp.asarray(rng.normal(size=(batch, size, size, c_in)), jnp.float32)
@@ -150,7 +152,8 @@ def test_convolution_equals_xla_convolution(size, kernel, stride, padding, batch
 @pytest.mark.default_opt
 @pytest.mark.parametrize("size,kernel,stride,padding,batch,c_out",
                          [(10, 4, 2, 1, 2, 2), (19, 4, 2, 2, 2, 2), (1, 5, 1, 0, 2, 2), (6, 3, 2, 0, 2, 2),
-                          (9, 4, 2, 1, 20, 2), (8, 4, 2, 2, 2, 1), (9, 4, 2, 1, 1, 2), (10, 4, 2, 2, 1, 1)])
+                          (9, 4, 2, 1, 20, 2), (8, 4, 2, 2, 2, 1), (9, 4, 2, 1, 1, 2), (10, 4, 2, 2, 1, 1),
+                          (9, 8, 4, 2, 2, 1)])
 def test_conv_transpose_equals_xla_dilated_form(size, kernel, stride, padding, batch, c_out):
     rng = np.random.default_rng(2)
     x = jnp.asarray(rng.normal(size=(batch, size, size, 3)), jnp.float32)
@@ -329,6 +332,14 @@ def test_thesis_sized_model_one_step():
     target = jnp.asarray(rng.uniform(size=(1, 150, 150)), jnp.float32)
     loss = float(bce_with_logits(out["logits"], target))
     assert np.isfinite(loss) and abs(loss - np.log(2)) < 0.01, loss
+
+
+def test_small_128_preset_is_the_small_networks_behind_one_wider_first_layer():
+    small, wide = preset("small"), preset("small-128")
+    assert wide.encoder_sizes == (128, 32, 16, 8, 4, 1)
+    assert wide.decoder_sizes == (1, 4, 8, 16, 32, 128)
+    assert wide.encoder[1:] == small.encoder[1:] and wide.encoder[0].features == small.encoder[0].features
+    assert dataclasses.replace(wide, image_size=64, encoder=small.encoder) == small
 
 
 def test_bad_architecture_is_rejected():
