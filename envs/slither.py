@@ -57,6 +57,7 @@ from flax import struct
 
 from envs import fastrng
 from envs import render as _render
+from envs import symmetry
 from envs._xla import materialise
 from envs.render import RenderSpec, wrap_delta, wrap_position
 
@@ -137,6 +138,8 @@ LEVELS: dict[str, dict[str, float]] = {
     "heading": {},
     # the thesis level itself seen by that camera, its pellets as small (see LEVEL_GAMES)
     "thesis-heading": {},
+    # the thesis level north-up, its frames turned by the heading read off them (see LEVEL_GAMES)
+    "thesis-flow": {},
 }
 
 # Static drawing options of the levels that have any (`Slither` arguments, beside the level's
@@ -157,6 +160,9 @@ LEVEL_GAMES: dict[str, dict[str, float | str]] = {
     # the thesis level, pellets and all, heading up the screen: what a north-up frame turned by
     # the heading read off it shows (`envs.symmetry.turn_to_heading`)
     "thesis-heading": {"camera": "heading"},
+    # the thesis level, each north-up frame turned so that the heading the optical flow between it
+    # and the frame before shows points up: `thesis-heading`'s view, made from the pixels alone
+    "thesis-flow": {"camera": "flow"},
 }
 
 
@@ -203,6 +209,17 @@ class SlitherState:
     pellet_dy: jnp.ndarray
     time: jnp.ndarray
     terminated: jnp.ndarray
+
+
+@struct.dataclass
+class FlowViewState(SlitherState):
+    """The state of a game seen by the ``flow`` camera: the game's, its north-up observation
+    shrunk to ``envs.symmetry.FLOW_SIZE`` (``flow_frame``) and the heading the view is turned by
+    (``view_heading`` [2], a unit vector, x right, y down), read off that frame and the one before
+    (:func:`envs.symmetry.follow_heading`); up the screen, ``(0, -1)``, at reset."""
+
+    flow_frame: jnp.ndarray
+    view_heading: jnp.ndarray
 
 
 def canonical_params(params: SlitherParams | None = None) -> SlitherParams:
@@ -273,6 +290,15 @@ def straight_body(head_x, head_y, heading, spacing, num_segments, arena_size):
     return wrap_position(x, arena_size), wrap_position(y, arena_size)
 
 
+# The game's cameras: the renderer's, and the north-up view turned by the heading the pixels show.
+CAMERAS = _render.CAMERAS + ("flow",)
+
+
+def _fields(state) -> dict:
+    """A game state's fields by name (not recursing into them, as `dataclasses.asdict` would)."""
+    return {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
+
+
 class Slither:
     """The game: static sizes here, physics in :class:`SlitherParams`.
 
@@ -286,8 +312,11 @@ class Slither:
       segment_radius, pellet_radius: drawing radii in raw pixels.
       max_drawn_segments: snake segments the fast observation draws at most (see
         :class:`envs.render.RenderSpec`).
-      camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game) or
-        ``"heading"`` (the view turns with the player, its heading up the screen).
+      camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game),
+        ``"heading"`` (the view turns with the player, its heading up the screen) or ``"flow"``
+        (the north-up frame turned so that the heading read off it and the frame before, from
+        the pixels alone, points up: :class:`FlowViewState`; the view a pixel-only agent can
+        make for itself of the thesis's game).
     """
 
     def __init__(
@@ -302,6 +331,8 @@ class Slither:
         max_drawn_segments: int = 64,
         camera: str = "north",
     ):
+        if camera not in CAMERAS:
+            raise ValueError(f"unknown camera {camera!r}; choose one of {', '.join(CAMERAS)}")
         grid = arena_size / pellet_cell_size
         if abs(grid - round(grid)) > 1e-6:
             raise ValueError(
@@ -324,8 +355,11 @@ class Slither:
             segment_radius=float(segment_radius),
             pellet_radius=float(pellet_radius),
             max_drawn_segments=int(max_drawn_segments),
-            camera=str(camera),
+            camera="north" if camera == "flow" else str(camera),
         )
+        self.camera = str(camera)
+        # the flow camera draws its view as the heading camera does, turned by the heading it reads
+        self.view_spec = dataclasses.replace(self.spec, camera="heading") if camera == "flow" else self.spec
         self.grid = self.spec.grid
         self.pellet_margin = float(pellet_radius) + 1.0
 
@@ -345,7 +379,7 @@ class Slither:
     def __repr__(self) -> str:
         return (
             f"Slither(num_opponents={self.num_opponents}, max_segments={self.max_segments}, "
-            f"arena_size={self.arena_size}, pellet_cell_size={self.pellet_cell_size}, camera={self.spec.camera!r})"
+            f"arena_size={self.arena_size}, pellet_cell_size={self.pellet_cell_size}, camera={self.camera!r})"
         )
 
     @property
@@ -411,7 +445,7 @@ class Slither:
         ox, oy, o_heading, o_len = self._spawn(u[3:], head_x, head_y, params)
         filled = ug[0] < params.pellet_init_fill
         init_len = jnp.clip(jnp.asarray(params.init_length, jnp.float32), 1.0, self.max_segments)
-        return SlitherState(
+        state = SlitherState(
             x=jnp.concatenate([px[None], ox[1:]], axis=0),
             y=jnp.concatenate([py[None], oy[1:]], axis=0),
             heading=jnp.concatenate([heading[None], o_heading[1:]]),
@@ -424,6 +458,10 @@ class Slither:
             time=jnp.zeros((), jnp.int32),
             terminated=jnp.zeros((), bool),
         )
+        if self.camera != "flow":
+            return state
+        return FlowViewState(**_fields(state), flow_frame=symmetry.flow_frame(self._north_obs(state, params)),
+                             view_heading=jnp.asarray([0.0, -1.0], jnp.float32))
 
     def active(self, state: SlitherState) -> jnp.ndarray:
         """[S, M] bool: which segments exist."""
@@ -580,14 +618,26 @@ class Slither:
             time=time,
             terminated=terminated,
         )
+        if self.camera == "flow":
+            frame = symmetry.flow_frame(self._north_obs(new_state, params))
+            new_state = FlowViewState(**_fields(new_state), flow_frame=frame,
+                                      view_heading=symmetry.follow_heading(state.flow_frame, frame, state.view_heading))
         reward = length[0] - state.length[0]
         truncated = (time >= params.max_steps) & ~terminated
         info = {"length": length[0], "opponents_died": jnp.sum(died)}
         return new_state, reward, terminated, truncated, info
 
     def get_obs(self, state: SlitherState, params: SlitherParams | None = None) -> jnp.ndarray:
-        """The pre-processed observation [150, 150] float32 in [0, 1] (fast path)."""
+        """The pre-processed observation [150, 150] float32 in [0, 1] (fast path).  With the
+        ``flow`` camera, the view turned by the state's ``view_heading``, which the pixels of
+        its last two north-up frames gave (the player's true heading is not read)."""
         params = self.default_params if params is None else params
+        if self.camera == "flow":
+            angle = jnp.arctan2(state.view_heading[1], state.view_heading[0])
+            state = state.replace(heading=state.heading.at[0].set(angle))
+        return _render.render_obs(self.view_spec, state, self.active(state), params.background_contrast)
+
+    def _north_obs(self, state: SlitherState, params: SlitherParams) -> jnp.ndarray:
         return _render.render_obs(self.spec, state, self.active(state), params.background_contrast)
 
     def render_raw(self, state: SlitherState, params: SlitherParams | None = None) -> jnp.ndarray:

@@ -42,7 +42,7 @@ def test_contrast_blends_the_background_toward_its_mean(background_only):
 def test_levels_are_named_overrides():
     assert LEVELS["thesis"] == {}
     assert [RunConfig(level=name).level for name in LEVELS] == list(LEVELS)  # one list of levels: the game's
-    listed = "thesis, flat, sparse, clean, visible, heading, thesis-heading"
+    listed = "thesis, flat, sparse, clean, visible, heading, thesis-heading, thesis-flow"
     with pytest.raises(ValueError, match=f"level must be one of {listed}; got 'hard'"):
         RunConfig(level="hard")
     clean = level_params("clean")

@@ -88,7 +88,7 @@ class RunConfig:
     recipe: str = _opt(DEFAULT_RECIPE, f"training recipe filling the options it names: {' or '.join(RECIPES)}")
     data: str = _opt("game", "'game' (collect from the built-in game and cache it), 'synthetic', or a data set directory")
     level: str = _opt("thesis", "level of the built-in game (data collection and online play): thesis, flat, sparse, "
-                                "clean, visible, heading, thesis-heading (envs.slither.LEVELS)")
+                                "clean, visible, heading, thesis-heading, thesis-flow (envs.slither.LEVELS)")
     episodes: int = _opt(60, "episodes to collect when data is 'game' or 'synthetic'")
     episode_steps: int = _opt(200, "step limit of a collected episode")
     unroll: int = _recipe_opt("truncated-BPTT length T")
