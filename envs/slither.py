@@ -632,10 +632,16 @@ class Slither:
         ``flow`` camera, the view turned by the state's ``view_heading``, which the pixels of
         its last two north-up frames gave (the player's true heading is not read)."""
         params = self.default_params if params is None else params
-        if self.camera == "flow":
-            angle = jnp.arctan2(state.view_heading[1], state.view_heading[0])
-            state = state.replace(heading=state.heading.at[0].set(angle))
+        state = self._as_viewed(state)
         return _render.render_obs(self.view_spec, state, self.active(state), params.background_contrast)
+
+    def _as_viewed(self, state: SlitherState) -> SlitherState:
+        """What the view is drawn from: with the ``flow`` camera, the player's heading replaced by
+        the one read off the pixels (the only field of the state the drawing turns by)."""
+        if self.camera != "flow":
+            return state
+        angle = jnp.arctan2(state.view_heading[1], state.view_heading[0])
+        return state.replace(heading=state.heading.at[0].set(angle))
 
     def _north_obs(self, state: SlitherState, params: SlitherParams) -> jnp.ndarray:
         return _render.render_obs(self.spec, state, self.active(state), params.background_contrast)
@@ -648,7 +654,7 @@ class Slither:
     def in_view(self, state: SlitherState) -> jnp.ndarray:
         """[S] bool: some segment centre of snake s lies inside the observed crop."""
         half = _render.CROP_SIZE / 2
-        dx, dy = _render.view_offsets(self.spec, _render.view_axes(self.spec, state),
+        dx, dy = _render.view_offsets(self.view_spec, _render.view_axes(self.view_spec, self._as_viewed(state)),
                                       wrap_delta(state.x - state.x[0, 0], self.arena_size),
                                       wrap_delta(state.y - state.y[0, 0], self.arena_size))
         inside = (jnp.abs(dx) < half) & (jnp.abs(dy) < half) & self.active(state)

@@ -120,7 +120,8 @@ SMALL = ArchConfig(
 # The small preset's networks on 128 x 128 frames: the first layer reads 8 x 8 windows at stride
 # 4 to the same 32 x 32 x 8 that the small preset's first layer makes of 64 x 64, the rest (and
 # the decoder's mirror) is the small preset's. At 64 x 64 the thesis level's pellets (radius 2 of the
-# 150 raw pixels) are sub-pixel dots; at 128 x 128 they are discs about 3.4 pixels across.
+# raw pixels) brighten about 4 pixels by a fifth of the range, at 128 x 128 about 8 by a half
+# (`benchmarks/pellet_contrast.py`).
 SMALL_128 = dataclasses.replace(
     SMALL,
     image_size=128,
