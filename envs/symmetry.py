@@ -109,13 +109,17 @@ def turn_to_heading(frames, heading_xy):
     return jax.vmap(one)(frames, heading_xy)
 
 
-def heading_from_flow(previous: jax.Array, frame: jax.Array, inner_radius: float = 12.0) -> jax.Array:
+def heading_from_flow(previous: jax.Array, frame: jax.Array, inner_radius: float = 12.0,
+                      reweightings: int = 0) -> jax.Array:
     """The player's heading ``[..., 2]`` (x right, y down; not normalised) read off two
     consecutive north-up frames ``[..., S, S]`` without any learning: the camera follows the head,
     so the world seen around it moves by minus the head's step, and the global optical flow
     (Lucas-Kanade: one translation fitted to the brightness change by least squares over the
     annulus ``inner_radius`` < r < S / 2 - 2 pixels, which leaves out the player's own body near
-    the centre) points against the heading.  Feed it to :func:`turn_to_heading`."""
+    the centre) points against the heading.  With ``reweightings`` > 0, the fit is repeated that
+    many times with every pixel weighted down by its residual (Cauchy weights 1 / (1 + (e / c)²),
+    c twice the mean absolute residual): pixels the one translation does not explain, other
+    snakes moving on their own, count less.  Feed it to :func:`turn_to_heading`."""
     size = frame.shape[-1]
     q = jnp.arange(size, dtype=jnp.float32) - (size - 1) / 2
     r = jnp.hypot(q[:, None], q[None, :])
@@ -124,18 +128,25 @@ def heading_from_flow(previous: jax.Array, frame: jax.Array, inner_radius: float
     gy, gx = jnp.gradient(mean, axis=-2), jnp.gradient(mean, axis=-1)
     it = frame - previous
 
-    def total(x):
-        return jnp.sum(mask * x, axis=(-2, -1))
+    def solve(weight):
+        def total(x):
+            return jnp.sum(weight * x, axis=(-2, -1))
 
-    axx, axy, ayy = total(gx * gx), total(gx * gy), total(gy * gy)
-    bx, by = -total(gx * it), -total(gy * it)
-    det = axx * ayy - axy * axy + 1e-12
-    u = (ayy * bx - axy * by) / det
-    v = (axx * by - axy * bx) / det
+        axx, axy, ayy = total(gx * gx), total(gx * gy), total(gy * gy)
+        bx, by = -total(gx * it), -total(gy * it)
+        det = axx * ayy - axy * axy + 1e-12
+        return (ayy * bx - axy * by) / det, (axx * by - axy * bx) / det
+
+    u, v = solve(mask)
+    for _ in range(reweightings):
+        error = jnp.abs(gx * u[..., None, None] + gy * v[..., None, None] + it)
+        scale = 2.0 * jnp.sum(mask * error, axis=(-2, -1), keepdims=True) / jnp.sum(mask) + 1e-12
+        u, v = solve(mask / (1.0 + jnp.square(error / scale)))
     return -jnp.stack([u, v], axis=-1)
 
 
 FLOW_SIZE = 64  # the side the flow camera reads the heading at (see `follow_heading`)
+FLOW_REWEIGHTINGS = 3  # robust refits of its flow (see `heading_from_flow`)
 
 
 def flow_frame(frame: jax.Array) -> jax.Array:
@@ -149,8 +160,9 @@ def follow_heading(previous: jax.Array, frame: jax.Array, last_heading: jax.Arra
     """The unit heading ``[..., 2]`` (x right, y down) the ``flow`` camera turns its view by:
     :func:`heading_from_flow` of two consecutive north-up frames at ``FLOW_SIZE``
     (:func:`flow_frame`), the player's body, the inner quarter of the side, left out;
-    ``last_heading`` where the frames show no motion.  On 756 frame pairs of 8 games of random
-    play at level ``thesis``: median error 0.4 degrees, 90th percentile 5.7."""
-    read = heading_from_flow(previous, frame, inner_radius=FLOW_SIZE / 4)
+    ``last_heading`` where the frames show no motion; ``FLOW_REWEIGHTINGS`` robust refits.  On 2 242
+    steps of 16 games of random play at level ``thesis``: median error 0.3 degrees, 90th percentile
+    1.0, 99th 2.3 (one plain fit: 0.5, 3.3 and 14.1, the tail where other snakes are in view)."""
+    read = heading_from_flow(previous, frame, inner_radius=FLOW_SIZE / 4, reweightings=FLOW_REWEIGHTINGS)
     norm = jnp.linalg.norm(read, axis=-1, keepdims=True)
     return jnp.where(norm > 1e-6, read / jnp.maximum(norm, 1e-6), last_heading)
