@@ -137,11 +137,13 @@ def heading_from_flow(previous: jax.Array, frame: jax.Array, inner_radius: float
         det = axx * ayy - axy * axy + 1e-12
         return (ayy * bx - axy * by) / det, (axx * by - axy * bx) / det
 
-    u, v = solve(mask)
-    for _ in range(reweightings):
+    def refit(_, flow):
+        u, v = flow
         error = jnp.abs(gx * u[..., None, None] + gy * v[..., None, None] + it)
         scale = 2.0 * jnp.sum(mask * error, axis=(-2, -1), keepdims=True) / jnp.sum(mask) + 1e-12
-        u, v = solve(mask / (1.0 + jnp.square(error / scale)))
+        return solve(mask / (1.0 + jnp.square(error / scale)))
+
+    u, v = jax.lax.fori_loop(0, reweightings, refit, solve(mask))
     return -jnp.stack([u, v], axis=-1)
 
 
