@@ -138,7 +138,7 @@ LEVELS: dict[str, dict[str, float]] = {
     "heading": {},
     # the thesis level itself seen by that camera, its pellets as small (see LEVEL_GAMES)
     "thesis-heading": {},
-    # the thesis level north-up, its frames turned by the heading read off them (see LEVEL_GAMES)
+    # the thesis level seen turned by the heading its north-up frames show (see LEVEL_GAMES)
     "thesis-flow": {},
 }
 
@@ -314,9 +314,9 @@ class Slither:
         :class:`envs.render.RenderSpec`).
       camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game),
         ``"heading"`` (the view turns with the player, its heading up the screen) or ``"flow"``
-        (the north-up frame turned so that the heading read off it and the frame before, from
-        the pixels alone, points up: :class:`FlowViewState`; the view a pixel-only agent can
-        make for itself of the thesis's game).
+        (the heading camera's view, turned by the heading the optical flow between the last two
+        north-up frames shows instead of the true one: :class:`FlowViewState`; the view a
+        pixel-only agent can make for itself of the thesis's game).
     """
 
     def __init__(
