@@ -34,6 +34,7 @@ ACCEPTED = {
     ("b2", "0"),  # RMS of the last gradient only
     ("ascent", "0"),  # online variants: model learning without the reward ascent
     ("reward_weight", "0"),  # no reward-prediction loss
+    ("reward_balanced_weight", "0"),  # no balanced reward term (the default)
     ("noise_std", "0"),  # no exploration noise
     ("value_coef", "0"),  # ppo: no value loss
     ("entropy_coef", "0"),  # ppo: no entropy bonus

@@ -216,6 +216,43 @@ def test_the_replay_buffer_is_a_ring():
     np.testing.assert_array_equal(replay.obs[0, :, 0, 0, 0], [51, 51, 51, 64])
 
 
+def test_the_balanced_reward_error_weighs_each_sign_class_alike():
+    """`balanced_squared_error` against the per-class means computed apart: each sign class of
+    the target present weighs alike, an absent one not at all, and so one rare reward among many
+    steps gets half the gradient (two classes) where the plain mean gives it 1 / steps."""
+    from cdrl.models.controller import balanced_squared_error
+
+    rng = np.random.default_rng(0)
+    target = np.zeros((16, 4), np.float32)
+    target[3, 1], target[9, 2], target[5, 0] = 0.5, 0.5, -0.25
+    pred = rng.normal(0.0, 0.3, target.shape).astype(np.float32)
+    err = (pred - target) ** 2
+    expected = np.mean([err[target < 0].mean(), err[target == 0].mean(), err[target > 0].mean()])
+    assert float(balanced_squared_error(jnp.asarray(pred), jnp.asarray(target))) == pytest.approx(expected, rel=1e-5)
+    one = np.zeros((100,), np.float32)
+    one[42] = 0.5
+    pred = rng.normal(0.0, 0.3, one.shape).astype(np.float32)
+    expected = np.mean([((pred - one)[one == 0] ** 2).mean(), (pred[42] - 0.5) ** 2])  # no negative class
+    assert float(balanced_squared_error(jnp.asarray(pred), jnp.asarray(one))) == pytest.approx(expected, rel=1e-5)
+    grad = jax.grad(lambda p: balanced_squared_error(p, jnp.asarray(one)))(jnp.asarray(pred))
+    plain = jax.grad(lambda p: jnp.mean(jnp.square(p - jnp.asarray(one))))(jnp.asarray(pred))
+    assert float(grad[42]) == pytest.approx(2.0 * (pred[42] - 0.5) / 2.0, rel=1e-5)
+    assert float(plain[42]) == pytest.approx(2.0 * (pred[42] - 0.5) / 100.0, rel=1e-5)
+    assert float(balanced_squared_error(jnp.zeros(8), jnp.zeros(8))) == 0.0  # one class, no division by absent ones
+
+
+def test_the_balanced_reward_weight_reaches_the_loss_or_is_refused_by_name():
+    from cdrl.runs.config import RunConfig
+
+    cfg = RunConfig(variant="reward_prediction", controller="none", recipe="fast", reward_balanced_weight=0.003)
+    hp = cfg.hparams(make_variant(cfg.variant, cfg.arch))
+    assert float(hp.loss_weights["reward_balanced"]) == pytest.approx(0.003)
+    assert float(hp.loss_weights["reward_mse"]) == 0.0  # the fast recipe's offline world model
+    for bad in ({"variant": "main"}, {"variant": "final_proposal", "controller": "rollout"}, {"variant": "ppo"}):
+        with pytest.raises(ValueError, match="reward_balanced_weight"):
+            RunConfig(reward_balanced_weight=0.1, **bad)
+
+
 def _left_bonus_learner(controller: str):
     g, params = games.left_bonus_game()
     v = make_variant("final_proposal", TINY)

@@ -43,8 +43,9 @@ def test_learners_are_runs_that_resume_exactly(tmp_path, capsys, learner):
 
 def test_a_world_model_learnt_offline_starts_a_controller_run(tmp_path, capsys):
     """`--controller none` trains a controller variant offline on recorded episodes (the reward
-    term off by default, weighted by `reward_weight` when set); `--init-from` starts a controller run from that model,
-    with its input normalisation; a model of another variant is refused, naming both."""
+    terms off by default, weighted by `reward_weight` and `reward_balanced_weight` when set);
+    `--init-from` starts a controller run from that model, with its input normalisation; a model
+    of another variant is refused, naming both."""
     import json
 
     from cdrl.cli import main
@@ -56,13 +57,15 @@ def test_a_world_model_learnt_offline_starts_a_controller_run(tmp_path, capsys):
     offline = ["--variant", "final_proposal", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30",
                "--batch", "2", "--unroll", "4", "--eval-every", "0", "--eval-episodes", "1", "--no-tensorboard"]
     assert main(["train", "--run-dir", str(src), "--controller", "none", *offline, "--steps", "3",
-                 "--reward-weight", "0.25"]) == 0
+                 "--reward-weight", "0.25", "--reward-balanced-weight", "0.5"]) == 0
     cfg = RunDir(src).read_config()
     assert cfg.kind == "offline" and cfg.obs_norm == "data" and cfg.obs_std != 1.0
     assert RunConfig(variant="final_proposal", controller="none").reward_weight == 0.0
     first = json.loads((src / "metrics.jsonl").read_text().splitlines()[0])
     terms = first["terms"]
-    assert first["loss"] == pytest.approx(terms["obs_bce"] + 0.25 * terms["reward_mse"], rel=1e-5)
+    assert first["loss"] == pytest.approx(terms["obs_bce"] + 0.25 * terms["reward_mse"] + 0.5 * terms["reward_balanced"],
+                                          rel=1e-5)
+    assert terms["reward_balanced"] != pytest.approx(terms["reward_mse"], rel=1e-3)
     learnt = restore_params(RunDir(src))[1]
     # an SGD step of 1e-12 leaves the observation path where the source left it
     assert main(["train", "--run-dir", str(dst), "--variant", "final_proposal", "--controller", "critic",

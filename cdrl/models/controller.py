@@ -25,6 +25,19 @@ from cdrl.models.base import StepInput, bce_with_logits
 from cdrl.models.observation import ClosedLoop, MainAction
 
 
+def balanced_squared_error(pred: jax.Array, target: jax.Array, tol: float = 1e-6) -> jax.Array:
+    """The squared error of `pred` averaged within each sign class of `target` (below -`tol`,
+    within it, above it), the classes present in the batch weighing alike: a rare reward (a
+    pellet eaten, a few steps in a hundred) counts as much as the common none. UNREAL's reward
+    prediction (Jaderberg et al. 2016) balances so, sampling sequences that end in reward and in
+    none equally often; the plain mean lets a frequent class decide what the core learns."""
+    classes = [target < -tol, jnp.abs(target) <= tol, target > tol]
+    err = jnp.square(pred - target)
+    per_class = [jnp.sum(jnp.where(m, err, 0.0)) / jnp.maximum(jnp.sum(m), 1) for m in classes]
+    present = [jnp.any(m) for m in classes]
+    return sum(jnp.where(p, e, 0.0) for p, e in zip(present, per_class)) / sum(p.astype(jnp.float32) for p in present)
+
+
 class _Heads:
     """Mixin: split the FC output into observation / action / reward codes and decode them."""
 
@@ -103,12 +116,14 @@ class _Heads:
         weights = {"obs_bce": 1.0}
         if self.predicts_reward:
             weights["reward_mse"] = 1.0
+            weights["reward_balanced"] = 0.0
         return weights
 
     def loss_terms(self, params, xs, outs, next_obs, next_reward):
         terms = {"obs_bce": bce_with_logits(outs["logits"], next_obs)}
         if self.predicts_reward:
             terms["reward_mse"] = jnp.mean(jnp.square(outs["reward"] - next_reward))
+            terms["reward_balanced"] = balanced_squared_error(outs["reward"], next_reward)
         return terms
 
     def _outputs(self, params, k, d_all):

@@ -124,6 +124,9 @@ class RunConfig:
     ascent: float = _opt(0.1, "online variants: lambda, the weight of the predicted-reward ascent term")
     reward_weight: float = _recipe_opt("online variants: weight of the reward-prediction loss (SGD lr 0.1 with momentum "
                                        "0.9 oscillates on it at 1)")
+    reward_balanced_weight: float = _opt(0.0, "reward variants (offline and the replay learners' model): weight of the "
+                                              "reward's squared error balanced over its sign classes (-, 0, +: each "
+                                              "class present weighs alike), which teaches the core rare rewards")
     noise_std: float = _opt(0.3, "online variants: exploration: the std of the noise on the controller's actions "
                                  "(rollout), the chance a button is drawn uniformly (imagine, critic, value)")
     noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration")
@@ -173,6 +176,13 @@ class RunConfig:
         if self.kind != "offline" and curriculum != (1,):
             raise ValueError(f"multistep {self.multistep!r} is for offline runs (teacher-forced on recorded "
                              f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
+        predicts = self.variant in VARIANTS and VARIANTS[self.variant].predicts_reward
+        if self.reward_balanced_weight > 0 and (not predicts or (self.kind == "online" and self.controller == "rollout")):
+            raise ValueError(f"reward_balanced_weight {self.reward_balanced_weight!r} weighs a reward head's error in "
+                             f"offline training and the replay learners' model updates; {self.variant!r} "
+                             f"{'with controller rollout ' if self.kind == 'online' else ''}has no such term "
+                             "(reward_prediction or final_proposal, offline or with controller imagine, critic, "
+                             "value or real)")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
                    "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "controller": CONTROLLER_CHOICES}
         for name, allowed in choices.items():
@@ -228,12 +238,14 @@ class RunConfig:
         return ks
 
     def hparams(self, variant: Variant, fed: bool | None = None) -> HParams:
-        """The traced hyper-parameters of offline training (a reward head's term weighted by
-        `reward_weight`; the curriculum's first K; `fed`: unroll with fed-back predictions,
-        by default where the curriculum has a K above 1)."""
+        """The traced hyper-parameters of offline training (a reward head's terms weighted by
+        `reward_weight` and `reward_balanced_weight`; the curriculum's first K; `fed`: unroll
+        with fed-back predictions, by default where the curriculum has a K above 1)."""
         ks = self.feed_curriculum
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
-                              loss_weights={"reward_mse": self.reward_weight} if variant.predicts_reward else None,
+                              loss_weights={"reward_mse": self.reward_weight,
+                                            "reward_balanced": self.reward_balanced_weight}
+                              if variant.predicts_reward else None,
                               feed_every=ks[0], fed=max(ks) > 1 if fed is None else fed)
 
 
@@ -267,7 +279,7 @@ RANGES: dict[str, Range] = {
                      "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
                      "horizon"), AT_LEAST_1),
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",
-                     "grad_clip", "ascent", "reward_weight", "noise_std", "value_coef", "entropy_coef"), AT_LEAST_0),
+                     "grad_clip", "ascent", "reward_weight", "reward_balanced_weight", "noise_std", "value_coef", "entropy_coef"), AT_LEAST_0),
     **dict.fromkeys(("lr", "obs_std", "fc_init_gain", "diverge_threshold", "ctrl_lr", "clip_eps"), ABOVE_0),
     **dict.fromkeys(("momentum", "b2"), BELOW_1),
     **dict.fromkeys(("gamma", "gae_lambda"), FRACTION),
