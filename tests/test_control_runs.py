@@ -63,8 +63,8 @@ def test_a_world_model_learnt_offline_starts_a_controller_run(tmp_path, capsys):
     assert RunConfig(variant="final_proposal", controller="none").reward_weight == 0.0
     first = json.loads((src / "metrics.jsonl").read_text().splitlines()[0])
     terms = first["terms"]
-    assert first["loss"] == pytest.approx(terms["obs_bce"] + 0.25 * terms["reward_mse"] + 0.5 * terms["reward_balanced"],
-                                          rel=1e-5)
+    weighted = terms["obs_bce"] + 0.25 * terms["reward_mse"] + 0.5 * terms["reward_balanced"]
+    assert first["loss"] == pytest.approx(weighted, rel=1e-5)
     assert terms["reward_balanced"] != pytest.approx(terms["reward_mse"], rel=1e-3)
     learnt = restore_params(RunDir(src))[1]
     # an SGD step of 1e-12 leaves the observation path where the source left it

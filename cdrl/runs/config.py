@@ -176,8 +176,9 @@ class RunConfig:
         if self.kind != "offline" and curriculum != (1,):
             raise ValueError(f"multistep {self.multistep!r} is for offline runs (teacher-forced on recorded "
                              f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
-        predicts = self.variant in VARIANTS and VARIANTS[self.variant].predicts_reward
-        if self.reward_balanced_weight > 0 and (not predicts or (self.kind == "online" and self.controller == "rollout")):
+        takes_balanced = (self.variant in VARIANTS and VARIANTS[self.variant].predicts_reward
+                          and not (self.kind == "online" and self.controller == "rollout"))
+        if self.reward_balanced_weight > 0 and not takes_balanced:
             raise ValueError(f"reward_balanced_weight {self.reward_balanced_weight!r} weighs a reward head's error in "
                              f"offline training and the replay learners' model updates; {self.variant!r} "
                              f"{'with controller rollout ' if self.kind == 'online' else ''}has no such term "
@@ -279,7 +280,8 @@ RANGES: dict[str, Range] = {
                      "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
                      "horizon"), AT_LEAST_1),
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",
-                     "grad_clip", "ascent", "reward_weight", "reward_balanced_weight", "noise_std", "value_coef", "entropy_coef"), AT_LEAST_0),
+                     "grad_clip", "ascent", "reward_weight", "reward_balanced_weight", "noise_std", "value_coef",
+                     "entropy_coef"), AT_LEAST_0),
     **dict.fromkeys(("lr", "obs_std", "fc_init_gain", "diverge_threshold", "ctrl_lr", "clip_eps"), ABOVE_0),
     **dict.fromkeys(("momentum", "b2"), BELOW_1),
     **dict.fromkeys(("gamma", "gae_lambda"), FRACTION),
