@@ -10,6 +10,10 @@ its held-out ones (0.5: chance):
 - from the world model's core output h_t (`Variant.features`, after the step that saw o_t and a_t);
 - the model's own reward head r̃_{t+1}, as it is;
 
+and, with the same inputs, ridge probes of the pellets the next 8 steps bring, Σ_k 0.9^k
+max(r_{t+1+k}, 0) up to the episode's end (what steering needs: the pellets within reach, not only
+the one at the mouth), scored by the held-out R²;
+
 and, to say why a reward term shapes so little of the core, the norms of each loss term's
 gradient (unweighted) per kernel at the run's initial parameters, on its first training chunk.
 
@@ -30,6 +34,7 @@ import numpy as np
 from common import emit
 
 RIDGE = 10.0  # the probes' L2 penalty, on standardised inputs
+AHEAD, AHEAD_GAMMA = 8, 0.9  # the pellets-ahead target: steps and discount
 
 
 def auc(score: np.ndarray, positive: np.ndarray) -> float:
@@ -38,12 +43,36 @@ def auc(score: np.ndarray, positive: np.ndarray) -> float:
     return float(np.mean(pos[:, None] > neg[None, :]) + 0.5 * np.mean(pos[:, None] == neg[None, :]))
 
 
-def ridge_auc(x_train, y_train, x_test, y_test) -> float:
+def ridge_predict(x_train, y_train, x_test) -> np.ndarray:
     mu, sd = x_train.mean(0), x_train.std(0) + 1e-6
     a = np.c_[(x_train - mu) / sd, np.ones(len(x_train))]
     b = np.c_[(x_test - mu) / sd, np.ones(len(x_test))]
-    w = np.linalg.solve(a.T @ a + RIDGE * np.eye(a.shape[1]), a.T @ y_train.astype(float))
-    return auc(b @ w, y_test)
+    return b @ np.linalg.solve(a.T @ a + RIDGE * np.eye(a.shape[1]), a.T @ y_train.astype(float))
+
+
+def ridge_auc(x_train, y_train, x_test, y_test) -> float:
+    return auc(ridge_predict(x_train, y_train, x_test), y_test)
+
+
+def ridge_r2(x_train, y_train, x_test, y_test) -> float:
+    """Held-out R² of the ridge fit (1 - residual / total sum of squares about the test mean)."""
+    resid = y_test - ridge_predict(x_train, y_train, x_test)
+    return float(1.0 - np.sum(resid ** 2) / np.sum((y_test - y_test.mean()) ** 2))
+
+
+def pellets_ahead(rewards: np.ndarray, n: int) -> np.ndarray:
+    """[n]: for each step t < n, Σ_{k < AHEAD} AHEAD_GAMMA^k max(r_{t+1+k}, 0), the rewards
+    of the episode only (`rewards[j]` is r_j, received on arriving at o_j)."""
+    pos = np.maximum(np.asarray(rewards[1:], np.float64), 0.0)
+    out = np.zeros(len(pos))
+    for k in range(min(AHEAD, len(pos))):
+        out[: len(pos) - k] += AHEAD_GAMMA ** k * pos[k:]
+    return out[:n]
+
+
+def ahead_targets(episodes) -> np.ndarray:
+    return np.concatenate([pellets_ahead(episodes[i].rewards, len(episodes[i].frames) - 1)
+                           for i in range(len(episodes))])
 
 
 def pixels(episodes):
@@ -136,6 +165,10 @@ def main(argv=None) -> int:
     (h_tr, _), (h_te, r_te) = model_outputs(variant, params, train), model_outputs(variant, params, test)
     result["auc_features"] = ridge_auc(h_tr, y_tr, h_te, y_te)
     result["auc_reward_head"] = auc(r_te, y_te)
+    a_tr, a_te = ahead_targets(train), ahead_targets(test)
+    result["pellets_ahead"] = {"steps": AHEAD, "gamma": AHEAD_GAMMA,
+                               "r2_pixels": ridge_r2(x_tr, a_tr, x_te, a_te),
+                               "r2_features": ridge_r2(h_tr, a_tr, h_te, a_te)}
     result["gradient_norms_at_init"] = term_gradients(variant, cfg, train)
     emit(result, args.out)
     return 0
