@@ -1,6 +1,7 @@
 """How visible a level's pellets are at each observation size: the game's 150 x 150 observation
 drawn with and without its pellets, both resized to the model's size (`cdrl.data.frames.resize_obs`,
-area-averaging), and the difference split into connected blobs (brightness change above 0.02).
+area-averaging, after a `--max-filter` max filter as preset `small-max` sees the game), and the
+difference split into connected blobs (brightness change above 0.02).
 
 Reported per level and size, as the mean over the start frames of `--games` games: the median
 blob's peak brightness change (`contrast`, in [0, 1]), its pixels, the blobs per frame, and the
@@ -8,6 +9,7 @@ share of the frame's pixels the pellets change (`area_share`: what a pellet weig
 per-pixel loss).
 
     .venv/bin/python benchmarks/pellet_contrast.py --out benchmarks/results/pellet_contrast.json
+    .venv/bin/python benchmarks/pellet_contrast.py --levels thesis --sizes 64 --max-filter 5
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import numpy as np
 from common import emit
 
 
-def measure(level: str, sizes, games: int) -> dict:
+def measure(level: str, sizes, games: int, max_filter: int = 1) -> dict:
     import jax
     import jax.numpy as jnp
     from scipy.ndimage import label
@@ -33,7 +35,8 @@ def measure(level: str, sizes, games: int) -> dict:
         with_pellets = game.jit.get_obs(state, params)
         without = game.jit.get_obs(state.replace(pellet_value=jnp.zeros_like(state.pellet_value)), params)
         for size in sizes:
-            change = np.abs(np.asarray(resize_obs(with_pellets, size) - resize_obs(without, size)))
+            seen = [resize_obs(frame, size, max_filter) for frame in (with_pellets, without)]
+            change = np.abs(np.asarray(seen[0] - seen[1]))
             blobs, n = label(change > 0.02)
             peaks = [change[blobs == i].max() for i in range(1, n + 1)]
             pixels = [np.sum(blobs == i) for i in range(1, n + 1)]
@@ -51,9 +54,12 @@ def main(argv=None) -> int:
     parser.add_argument("--levels", nargs="+", default=["thesis", "visible"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 96, 128, 150])
     parser.add_argument("--games", type=int, default=8)
+    parser.add_argument("--max-filter", type=int, default=1,
+                        help="side of the max filter before the resizing (preset small-max: 5; default: 1, none)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
-    result = {"games": args.games, "levels": {level: measure(level, args.sizes, args.games) for level in args.levels}}
+    result = {"games": args.games, "max_filter": args.max_filter,
+              "levels": {level: measure(level, args.sizes, args.games, args.max_filter) for level in args.levels}}
     for level, sizes in result["levels"].items():
         for size, row in sizes.items():
             print(f"{level:10s} {size:>4s} x {size:<4s} contrast {row['contrast']:.2f}  pixels {row['pixels']:5.1f}  "

@@ -55,11 +55,11 @@ def collect(variant, params, game, env_params, games: int, max_steps: int):
     import jax
     import jax.numpy as jnp
 
-    from cdrl.data.frames import resize_obs
+    from cdrl.data.frames import model_obs
     from cdrl.models.base import StepInput
     from envs.policies import privileged_policy, random_turns_instead
 
-    privileged, size = privileged_policy(game), variant.arch.image_size
+    privileged = privileged_policy(game)
 
     @jax.jit
     def run(keys):
@@ -70,7 +70,7 @@ def collect(variant, params, game, env_params, games: int, max_steps: int):
             def body(c, _):
                 state, obs, carry, action, first, key, alive = c
                 key, k_policy, k_explore, k_env = jax.random.split(key, 4)
-                frame = resize_obs(obs, size)[None]
+                frame = model_obs(obs, variant.arch)[None]
                 carry, _ = variant.step(params, carry, StepInput(obs=frame, action=action[None], is_first=first))
                 label, _ = privileged.step(k_policy, None, obs, state, env_params)
                 executed = random_turns_instead(k_explore, label, EXPLORE)
@@ -91,11 +91,10 @@ def linear_controller(variant, params, fit):
     it pressed, and its turn buttons at t + 1 are pressed where the probe is above 0."""
     import jax.numpy as jnp
 
-    from cdrl.data.frames import resize_obs
+    from cdrl.data.frames import model_obs
     from cdrl.models.base import StepInput
 
     mu, sd, w = (jnp.asarray(x, jnp.float32) for x in fit)
-    size = variant.arch.image_size
 
     def init(key):
         del key
@@ -103,7 +102,7 @@ def linear_controller(variant, params, fit):
 
     def step(key, state, obs):
         del key
-        x = StepInput(obs=resize_obs(obs, size)[None], action=state["action"], is_first=state["is_first"])
+        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=state["action"], is_first=state["is_first"])
         carry, _ = variant.step(params, state["carry"], x)
         z = jnp.concatenate([(variant.features(carry)[0] - mu) / sd, jnp.ones(1)]) @ w
         nxt = jnp.concatenate([(z > 0).astype(jnp.float32), jnp.zeros(1)])[None]

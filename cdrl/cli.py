@@ -211,7 +211,7 @@ def _cmd_collect(args) -> int:
 
     try:
         if args.env:
-            for name in ("batch_size", "devices"):
+            for name in ("batch_size", "devices", "max_filter"):
                 if getattr(args, name) is not None:
                     raise ValueError(f"--{name.replace('_', '-')} is for the built-in game (no --env)")
             gymrec.record_env(args.env, Path(args.out), args.episodes, size=args.obs_size, crop=args.crop,
@@ -225,6 +225,7 @@ def _cmd_collect(args) -> int:
             _use_cpu_devices(devices)
             collect(Path(args.out), args.episodes, policy=args.policy or "behaviour", seed=args.seed,
                     max_steps=args.episode_steps, obs_size=args.obs_size,
+                    max_filter=1 if args.max_filter is None else args.max_filter,
                     batch_size=16 if args.batch_size is None else args.batch_size, devices=devices)
     except USER_ERRORS as exc:
         print(f"cdrl collect: {exc}", file=sys.stderr)
@@ -345,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--episode-steps", type=int, default=500, help="step limit of an episode (default: 500)")
     col.add_argument("--obs-size", type=int, default=150,
                      help="side of the square observation: 64 for the small preset, 16 for tiny (default: 150)")
+    col.add_argument("--max-filter", type=int, default=None,
+                     help="built-in game: side of the max filter applied before shrinking to --obs-size, 5 for "
+                          "preset small-max (default: 1, none)")
     col.add_argument("--batch-size", type=int, default=None,
                      help="built-in game: episodes simulated together as one vmapped program (default: 16)")
     col.add_argument("--devices", type=int, default=None,

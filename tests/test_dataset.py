@@ -271,3 +271,24 @@ def test_atomic_write_replaces_whole_or_not_at_all_with_the_asked_permissions(tm
     small_collect(tmp_path / "data", num_episodes=2, max_steps=4)
     files = [p for p in (tmp_path / "data").iterdir() if p.name != LOCK_NAME]
     assert files and {p.stat().st_mode & 0o777 for p in files} == {0o600}
+
+
+def test_collect_with_a_max_filter_stores_the_filtered_frames_shrunk(tmp_path):
+    """`collect(obs_size=16, max_filter=3)`: every stored frame is the game's 150 x 150 frame
+    (the same episode replayed step by step) under scipy's 3 x 3 maximum filter, then area-shrunk
+    to 16 x 16; the manifest says so, and without the option it says nothing of it."""
+    from scipy.ndimage import maximum_filter
+
+    manifest = small_collect(tmp_path / "max", num_episodes=2, obs_size=16, max_filter=3)
+    assert manifest["config"]["max_filter"] == 3 and manifest["config"]["obs_size"] == 16
+    assert "max_filter" not in small_collect(tmp_path / "plain", num_episodes=1, obs_size=16)["config"]
+    game = game_for()
+    params = game.default_params.replace(max_steps=np.int32(12))
+    ep = EpisodeDataset(tmp_path / "max", "all")[1]
+    frames, _, _ = _replay(game, params, 7, 1)
+    filtered = maximum_filter(frames.astype(np.float32) / 255.0, size=(1, 3, 3), mode="nearest")
+    expected = np.asarray(jax.image.resize(filtered, (len(frames), 16, 16), "linear", antialias=True))
+    np.testing.assert_allclose(ep.frames.astype(np.float32), np.round(expected * 255.0), atol=1.0)
+    plain = np.asarray(jax.image.resize(frames.astype(np.float32) / 255.0, (len(frames), 16, 16), "linear",
+                                        antialias=True))
+    assert np.mean(np.abs(ep.frames / 255.0 - plain)) > 0.01  # the filter changed what was stored

@@ -75,8 +75,10 @@ def test_a_runs_level_reaches_its_data(tmp_path):
 def test_the_visible_level_draws_pellets_that_survive_the_small_preset(background_only):
     """Level `visible` is the thesis level's physics with pellets drawn at a snake segment's
     radius: one pellet in an empty view brightens the 64 x 64 frame by most of its range, the
-    thesis level's by about a fifth."""
-    from cdrl.data.frames import resize_obs
+    thesis level's by about a fifth, and the thesis level's as preset `small-max` sees it (a 5 x 5
+    max filter before the shrinking) by most of its range too."""
+    from cdrl.data.frames import model_obs, resize_obs
+    from cdrl.models.arch import preset
     from cdrl.runs.sources import run_game
     from envs.slither import level_game
 
@@ -97,7 +99,10 @@ def test_the_visible_level_draws_pellets_that_survive_the_small_preset(backgroun
         empty = np.asarray(resize_obs(g.get_obs(state, params), 64))
         corner = (slice(0, 24), slice(0, 24))  # the pellet's quarter, away from the player's body
         contrast[level] = float((with_pellet - empty)[corner].max())
-    assert contrast["visible"] > 0.6 and contrast["thesis"] < 0.3, contrast
+    g = level_game("thesis")
+    seen = [np.asarray(model_obs(g.get_obs(s, params), preset("small-max"))) for s in (one, state)]
+    contrast["thesis, small-max"] = float((seen[0] - seen[1])[corner].max())
+    assert contrast["visible"] > 0.6 and contrast["thesis"] < 0.3 and contrast["thesis, small-max"] > 0.6, contrast
 
 
 def test_the_heading_level_is_the_visible_level_seen_by_a_turning_camera(tmp_path):

@@ -342,7 +342,32 @@ def test_small_128_preset_is_the_small_networks_behind_one_wider_first_layer():
     assert dataclasses.replace(wide, image_size=64, encoder=small.encoder) == small
 
 
+def test_small_max_preset_is_the_small_networks_seeing_through_a_max_filter():
+    assert preset("small-max") == dataclasses.replace(preset("small"), max_filter=5)
+    assert preset("small").max_filter == 1 and THESIS.max_filter == 1
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
+def test_max_filter_and_resize_against_scipy(k):
+    """`max_filter` is scipy's maximum filter (a window cut at the edges is scipy's nearest-edge
+    padding, which adds no new value), over the last two axes of any leading shape; `resize_obs`
+    shrinks what it gives with jax's antialiased linear resize, and leaves a frame at the size
+    alone."""
+    from scipy.ndimage import maximum_filter
+
+    from cdrl.data.frames import max_filter, resize_obs
+
+    frames = np.random.default_rng(k).uniform(size=(2, 3, 30, 30)).astype(np.float32)
+    expected = maximum_filter(frames, size=(1, 1, k, k), mode="nearest")
+    np.testing.assert_array_equal(np.asarray(max_filter(jnp.asarray(frames), k)), expected)
+    shrunk = np.asarray(jax.image.resize(expected, (2, 3, 12, 12), "linear", antialias=True))
+    np.testing.assert_allclose(np.asarray(resize_obs(jnp.asarray(frames), 12, k)), shrunk, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(resize_obs(jnp.asarray(frames), 30, k)), frames)
+
+
 def test_bad_architecture_is_rejected():
+    with pytest.raises(ValueError, match="max_filter must be >= 1"):
+        ArchConfig(image_size=64, encoder=preset("small").encoder, max_filter=0)
     with pytest.raises(ValueError, match="reduce the 100x100 image to 1x1"):
         ArchConfig(image_size=100)
     with pytest.raises(ValueError, match="unknown architecture preset 'huge'"):

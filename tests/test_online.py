@@ -176,16 +176,15 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
     against the game's functions called directly, on a step where one game of three ends and
     on one where none does (the new games are then drawn not at all)."""
     g, params = game
-    size = ARCH.image_size
-    games3 = online.reset_games(g, params, jax.random.PRNGKey(1), 3, size)
+    games3 = online.reset_games(g, params, jax.random.PRNGKey(1), 3, ARCH)
     # game 0 one step from its step limit: it ends on this step, games 1 and 2 go on
     games3 = games3.replace(env_state=games3.env_state.replace(
         time=games3.env_state.time.at[0].set(params.max_steps - 1)))
     action = jnp.asarray([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
-    step = jax.jit(lambda gs, k: online.step_games(g, params, gs, action, k, size))
+    step = jax.jit(lambda gs, k: online.step_games(g, params, gs, action, k, ARCH))
     game_step = jax.jit(lambda k, states: jax.vmap(g.step, in_axes=(0, 0, 0, None))(
         jax.random.split(k, 3), states, action, params))
-    new_games = jax.jit(lambda k: online.reset_games(g, params, k, 3, size))
+    new_games = jax.jit(lambda k: online.reset_games(g, params, k, 3, ARCH))
     key, ends = jax.random.PRNGKey(2), [True, False, False]
     after, nxt, reward, stats = step(games3, key)
     k_env, k_reset = jax.random.split(key)
@@ -193,11 +192,11 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
     fresh = new_games(k_reset)
     _same(np.asarray(term | trunc), ends)
     _same(np.asarray(after.is_first), ends)
-    _same(np.asarray(nxt), np.asarray(online.resize_obs(obs, size)))
+    _same(np.asarray(nxt), np.asarray(online.model_obs(obs, ARCH)))
     _same(np.asarray(reward), np.asarray(r))
     for i, end in enumerate(ends):
         expected_state = jax.tree.map(lambda x: x[i], fresh.env_state if end else state)
-        expected_obs = (fresh.obs if end else online.resize_obs(obs, size))[i]
+        expected_obs = (fresh.obs if end else online.model_obs(obs, ARCH))[i]
         for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], after.env_state)),
                         jax.tree.leaves(expected_state), strict=True):
             _same(np.asarray(a), np.asarray(b))
@@ -212,5 +211,5 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
     assert not bool(jnp.any(term | trunc)) and not bool(jnp.any(after.is_first))
     for a, b in zip(jax.tree.leaves(after.env_state), jax.tree.leaves(state), strict=True):
         _same(np.asarray(a), np.asarray(b))
-    _same(np.asarray(after.obs), np.asarray(online.resize_obs(obs, size)))
+    _same(np.asarray(after.obs), np.asarray(online.model_obs(obs, ARCH)))
     _same(np.asarray(after.episode_length), np.asarray(games3.episode_length) + 1)

@@ -15,7 +15,7 @@ from cdrl.data.writer import Writer, check_collection, params_dict, write_set
 
 
 @functools.lru_cache(maxsize=8)
-def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size: int = 150):
+def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size: int = 150, max_filter: int = 1):
     """A jitted function running a batch of episodes for ``chunk_steps`` steps.
 
     Carry per episode: (game state, policy state, obs of that state, reward on
@@ -45,7 +45,7 @@ def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size:
         state, pstate, obs, reward, finished, key = carry
         key, k_policy, k_env = fastrng.split(key, 3)
         action, pstate = policy.step(k_policy, pstate, obs)
-        frame = jnp.round(resize_obs(obs, obs_size) * 255.0).astype(jnp.uint8)
+        frame = jnp.round(resize_obs(obs, obs_size, max_filter) * 255.0).astype(jnp.uint8)
         out = (frame, action.astype(jnp.float32), reward, ~finished)
         is_last = state.terminated | (state.time >= params.max_steps)
         state, reward, _, _, _ = game.step_state(k_env, state, action, params)
@@ -103,6 +103,7 @@ def collect(
     compress: bool = True,
     progress: bool | None = None,
     obs_size: int = 150,
+    max_filter: int = 1,
     devices: int = 1,
 ) -> dict:
     """Collects ``num_episodes`` Slither episodes into ``out_dir`` (or resumes).
@@ -131,6 +132,8 @@ def collect(
       progress: show a tqdm bar (None = only on a terminal).
       obs_size: side of the stored observations; the game's 150 x 150 observation is
         area-resized to it (for the smaller architecture presets).
+      max_filter: side of the max filter applied before that resizing (`ArchConfig.max_filter`;
+        1: none).
       devices: local devices the batch's games are spread over (:func:`games_sharding`;
         0: all); the episodes are the same for any count.
     Returns:
@@ -145,6 +148,8 @@ def collect(
     from envs.slither import SlitherParams, canonical_params
 
     check_collection(num_episodes, max_steps, obs_size, seed, largest=OBS_SIZE)
+    if int(max_filter) < 1:
+        raise ValueError(f"--max-filter must be >= 1 (1: none), got {max_filter}")
     get_policy(policy)
     sharding = games_sharding(devices, batch_size)
     if isinstance(env_params, dict):
@@ -164,16 +169,19 @@ def collect(
         "num_episodes": int(num_episodes),
         "obs_size": int(obs_size),
     }
+    if int(max_filter) > 1:  # absent from the data sets collected before the option (and without it)
+        config["max_filter"] = int(max_filter)
     def fill(writer):
         if writer.missing:
             _simulate(writer, params, game_kwargs, policy, int(seed), int(max_steps), int(batch_size),
-                      int(chunk_steps), int(obs_size), compress, progress, sharding)
+                      int(chunk_steps), int(obs_size), int(max_filter), compress, progress, sharding)
 
     return write_set(out_dir, config, fill)
 
 
 def _simulate(writer: Writer, params, game_kwargs: dict, policy: str, seed: int, max_steps: int, batch_size: int,
-              chunk_steps: int, obs_size: int, compress: bool, progress: bool | None, sharding=None) -> None:
+              chunk_steps: int, obs_size: int, max_filter: int, compress: bool, progress: bool | None,
+              sharding=None) -> None:
     """Runs and writes the episodes ``writer`` is missing (the body of :func:`collect`)."""
     import jax
     from tqdm.auto import tqdm
@@ -181,7 +189,7 @@ def _simulate(writer: Writer, params, game_kwargs: dict, policy: str, seed: int,
     from envs import fastrng
 
     missing = writer.missing
-    start, run = _rollout_fn(tuple(game_kwargs.items()), policy, int(chunk_steps), int(obs_size))
+    start, run = _rollout_fn(tuple(game_kwargs.items()), policy, int(chunk_steps), int(obs_size), int(max_filter))
     base = jax.random.PRNGKey(int(seed))
     episode_keys = jax.jit(jax.vmap(lambda i: fastrng.fold_in(base, i)))
     bar = tqdm(total=len(missing), desc="collect", unit="ep", disable=None if progress is None else not progress)

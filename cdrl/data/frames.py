@@ -38,9 +38,31 @@ def target_entropy(target: jax.Array) -> jax.Array:
     return jnp.mean(-(p * jnp.log(p) + (1 - p) * jnp.log1p(-p)), axis=(-2, -1))
 
 
-def resize_obs(obs: jax.Array, size: int) -> jax.Array:
-    """Game observations `[..., S, S]` to the model's `size` (area-averaging when shrinking)."""
+def max_filter(frames: jax.Array, k: int) -> jax.Array:
+    """Each pixel of `frames` `[..., H, W]` replaced by the brightest of the k x k window around
+    it (grey-level dilation; the window is cut at the frame's edges). k = 1 leaves them as they are."""
+    if k < 1:
+        raise ValueError(f"max filter side must be >= 1, got {k}")
+    if k == 1:
+        return frames
+    lead = frames.ndim - 2
+    return jax.lax.reduce_window(frames, -jnp.inf, jax.lax.max, (1,) * lead + (k, k), (1,) * frames.ndim,
+                                 [(0, 0)] * lead + [(k // 2, k - 1 - k // 2)] * 2)
+
+
+def resize_obs(obs: jax.Array, size: int, max_filter_size: int = 1) -> jax.Array:
+    """Game observations `[..., S, S]` to the model's `size`: area-averaging when shrinking,
+    after a `max_filter_size` max filter (`ArchConfig.max_filter`), which keeps a small bright
+    object (a pellet) near its brightness where the average alone would spread it into the
+    background. A frame already at `size` is returned as it is."""
     if obs.shape[-1] == size:
         return obs
+    obs = max_filter(obs, max_filter_size)
     shape = obs.shape[:-2] + (size, size)
     return jax.image.resize(obs, shape, method="linear", antialias=True)
+
+
+def model_obs(obs: jax.Array, arch) -> jax.Array:
+    """The game's observations `[..., S, S]` as a model of architecture `arch` (an
+    `ArchConfig`) sees them: `resize_obs` to its `image_size` after its `max_filter`."""
+    return resize_obs(obs, arch.image_size, arch.max_filter)

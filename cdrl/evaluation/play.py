@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from cdrl.data.frames import copy_last_bce, pixel_bce, resize_obs, target_entropy
+from cdrl.data.frames import copy_last_bce, model_obs, pixel_bce, target_entropy
 from cdrl.evaluation.metrics import excess_ratio
 from cdrl.models.base import StepInput, Variant
 
@@ -34,7 +34,6 @@ def controller_fns(variant: Variant) -> tuple[Callable, Callable]:
     """(init, step) of a controller variant's noise-free policy for one game, its parameters an
     argument: `init(key, params)`, `step(key, state, obs, params)`. One pair per variant, so a
     program playing it compiles once for any parameters (they are traced, not baked in)."""
-    size = variant.arch.image_size
 
     def init(key, params):
         del key, params
@@ -43,7 +42,7 @@ def controller_fns(variant: Variant) -> tuple[Callable, Callable]:
 
     def step(key, state, obs, params):
         del key
-        x = StepInput(obs=resize_obs(obs, size)[None], action=state["action"], is_first=state["is_first"])
+        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=state["action"], is_first=state["is_first"])
         carry, out = variant.step(params, state["carry"], x)
         new = {"carry": carry, "action": out["action"], "is_first": jnp.zeros((1,), bool)}
         return state["action"][0], new
@@ -140,12 +139,12 @@ def _model_trace(variant: Variant, game, params, env_params, keys, max_steps: in
         def body(c, _):
             env_state, obs, pstate, key, alive = c
             key, k_env = jax.random.split(key)
-            x = StepInput(obs=resize_obs(obs, variant.arch.image_size)[None], action=pstate["action"],
+            x = StepInput(obs=model_obs(obs, variant.arch)[None], action=pstate["action"],
                           is_first=pstate["is_first"])
             carry, out = variant.step(params, pstate["carry"], x)
             pstate = {"carry": carry, "action": out["action"], "is_first": jnp.zeros((1,), bool)}
             obs, env_state, reward, term, trunc, _ = game.step(k_env, env_state, x.action[0], env_params)
-            target = resize_obs(obs, variant.arch.image_size)[None]
+            target = model_obs(obs, variant.arch)[None]
             frames = (pixel_bce(out["logits"], target)[0], copy_last_bce(x.obs, target)[0], target_entropy(target)[0])
             return (env_state, obs, pstate, key, alive & ~(term | trunc)), (out["reward"][0], reward, alive, *frames)
 

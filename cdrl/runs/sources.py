@@ -42,7 +42,8 @@ def _cache_name(cfg: RunConfig, policy: str, episodes: int) -> str:
     game = f"-{cfg.level}" if cfg.level != "thesis" else ""
     if cfg.env:
         game += "-" + re.sub(r"[^A-Za-z0-9.=_-]+", "_", cfg.env.replace(",", "_"))
-    return (f"slither-{policy}-{cfg.arch.image_size}px-{episodes}ep-{cfg.episode_steps}steps-seed{cfg.seed}"
+    view = f"-max{cfg.arch.max_filter}" if cfg.arch.max_filter > 1 else ""
+    return (f"slither-{policy}-{cfg.arch.image_size}px{view}-{episodes}ep-{cfg.episode_steps}steps-seed{cfg.seed}"
             f"{game}")
 
 
@@ -61,7 +62,7 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
         policy = "uniform" if uses_action else "behaviour"
         path = cache_root / _cache_name(cfg, policy, cfg.episodes)
         collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
-                env_params=game_params(cfg), game_kwargs=LEVEL_GAMES.get(cfg.level, {}))
+                max_filter=cfg.arch.max_filter, env_params=game_params(cfg), game_kwargs=LEVEL_GAMES.get(cfg.level, {}))
     else:
         path = Path(cfg.data)
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
@@ -112,6 +113,12 @@ def verify_data(cfg: RunConfig, train, test) -> None:
             raise store.DatasetError(
                 f"data set {split.path} holds {shape[0]}x{shape[1]} frames; preset {cfg.preset!r} takes "
                 f"{size}x{size} (record the data at that size, or pick the preset that matches it)")
+        collected = split.manifest.get("config", {})
+        if collected.get("source") == "slither" and int(collected.get("max_filter", 1)) != cfg.arch.max_filter:
+            raise store.DatasetError(
+                f"data set {split.path} was shrunk after a max filter of side {collected.get('max_filter', 1)}; "
+                f"preset {cfg.preset!r} sees the game after one of side {cfg.arch.max_filter} "
+                f"(collect it with --max-filter {cfg.arch.max_filter}, or pick the preset that matches it)")
         split.verify()
 
 

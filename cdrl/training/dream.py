@@ -174,7 +174,7 @@ def _init_dream(variant, game, env_params, cfg, key, hp) -> DreamState:
     return DreamState(model=model, ctrl_opt_state=init_opt_state(hp.ctrl_opt, params),
                       reward_opt_state=init_opt_state(hp.ctrl_opt, params), critic=critic,
                       critic_opt_state=init_opt_state(hp.ctrl_opt, critic), replay=replay,
-                      games=reset_games(game, env_params, k_env, b, s),
+                      games=reset_games(game, env_params, k_env, b, variant.arch),
                       action=jnp.zeros((b, variant.arch.action_dim)), key=k_run)
 
 
@@ -193,7 +193,7 @@ def _act(variant: Variant, game, cfg: DreamConfig, state: DreamState, env_params
         key, k_buttons, k_game = jax.random.split(key, 3)
         obs, is_first = games.obs, games.is_first
         carry, out = variant.step(params, carry, StepInput(obs=obs, action=action, is_first=is_first))
-        games, nxt, reward, stats = step_games(game, env_params, games, action, k_game, variant.arch.image_size)
+        games, nxt, reward, stats = step_games(game, env_params, games, action, k_game, variant.arch)
         probs = (1.0 - explore) * out["action"] + explore * 0.5
         next_action = jnp.where(games.is_first[:, None], 0.0, draw_buttons(k_buttons, probs))
         record = {"obs": obs, "next_obs": nxt, "action": action, "reward": reward, "is_first": is_first,

@@ -24,7 +24,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from cdrl.data.frames import copy_last_bce, resize_obs, target_entropy
+from cdrl.data.frames import copy_last_bce, model_obs, target_entropy
 from cdrl.models.base import StepInput, Variant, bce_with_logits
 from cdrl.training.optim import OptHParams, init_opt_state
 from cdrl.training.step import TrainState, guarded_update, run_once
@@ -83,23 +83,23 @@ class Games:
     episode_length: jax.Array  # [B]
 
 
-def reset_games(game, env_params, key, n: int, size: int) -> Games:
-    """`n` new games, their first frames at the model's `size`."""
+def reset_games(game, env_params, key, n: int, arch) -> Games:
+    """`n` new games, their first frames as a model of architecture `arch` sees them (`model_obs`)."""
     obs, env_state = jax.vmap(game.reset, in_axes=(0, None))(jax.random.split(key, n), env_params)
-    return Games(env_state=env_state, obs=resize_obs(obs, size), is_first=jnp.ones((n,), bool),
+    return Games(env_state=env_state, obs=model_obs(obs, arch), is_first=jnp.ones((n,), bool),
                  episode_return=jnp.zeros((n,)), episode_length=jnp.zeros((n,), jnp.int32))
 
 
-def step_games(game, env_params, games: Games, executed: jax.Array, key, size: int):
+def step_games(game, env_params, games: Games, executed: jax.Array, key, arch):
     """Every game one step on the `executed` actions `[B, A]`; a game that ends is replaced by
-    a new one at once. Returns (games after the step, the frames o_{t+1} the step led to,
+    a new one at once, every frame as a model of architecture `arch` sees it. Returns (games after the step, the frames o_{t+1} the step led to,
     the rewards r_{t+1}, statistics `reward`, `done`, `finished_return`, `finished_length`
     and `action`). What the game returns carries no gradient: it is not differentiable."""
     k_env, k_reset = jax.random.split(key)
     executed = jax.lax.stop_gradient(executed)
     nxt, env_state, reward, term, trunc, _ = jax.vmap(game.step, in_axes=(0, 0, 0, None))(
         jax.random.split(k_env, executed.shape[0]), games.env_state, executed, env_params)
-    nxt = jax.lax.stop_gradient(resize_obs(nxt, size))
+    nxt = jax.lax.stop_gradient(model_obs(nxt, arch))
     reward = jax.lax.stop_gradient(reward.astype(jnp.float32))
     done = term | trunc
     ret, length = games.episode_return + reward, games.episode_length + 1
@@ -108,7 +108,7 @@ def step_games(game, env_params, games: Games, executed: jax.Array, key, size: i
         return jnp.where(done.reshape(done.shape + (1,) * (s.ndim - 1)), f, s)
 
     def restart(_):
-        fresh = reset_games(game, env_params, k_reset, executed.shape[0], size)
+        fresh = reset_games(game, env_params, k_reset, executed.shape[0], arch)
         return jax.tree.map(pick, fresh.env_state, env_state), pick(fresh.obs, nxt)
 
     # New games are drawn and drawn on screen only on the steps where one ends (a few in a
@@ -154,7 +154,7 @@ def _init_online(variant, game, env_params, cfg, key, hp) -> OnlineState:
     b = cfg.num_envs
     train = TrainState(params=params, opt_state=init_opt_state(hp.opt, params),
                        carry=variant.init_carry(b), step=jnp.zeros((), jnp.int32))
-    return OnlineState(train=train, games=reset_games(game, env_params, k_env, b, variant.arch.image_size),
+    return OnlineState(train=train, games=reset_games(game, env_params, k_env, b, variant.arch),
                        action=jnp.zeros((b, variant.arch.action_dim)), key=k_run)
 
 
@@ -177,7 +177,7 @@ def transition(variant: Variant, game, params, env_params, noise_std, c: Rollout
     a_in = c.action + jax.lax.stop_gradient(noisy - c.action)  # the executed value, gradient to ã
     obs = c.games.obs
     carry, out = variant.step(params, c.carry, StepInput(obs=obs, action=a_in, is_first=c.games.is_first))
-    games, nxt, reward, stats = step_games(game, env_params, c.games, noisy, k_game, variant.arch.image_size)
+    games, nxt, reward, stats = step_games(game, env_params, c.games, noisy, k_game, variant.arch)
     outs = {"logits": out["logits"], "obs": obs, "target": nxt,
             "pred_reward": out["reward"] if variant.predicts_reward else jnp.zeros_like(reward)}
     done = games.is_first

@@ -48,7 +48,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from cdrl.data.frames import resize_obs
+from cdrl.data.frames import model_obs
 from cdrl.models import nets
 from cdrl.models.arch import ArchConfig
 from cdrl.training.online import Games, reset_games, step_games
@@ -189,7 +189,7 @@ def _init_ppo(arch, game, env_params, cfg, key, hp) -> PPOState:
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = init_params(arch, k_params, cfg.hidden)
     return PPOState(params=params, opt_state=init_opt_state(hp.opt, params),
-                    games=reset_games(game, env_params, k_env, cfg.num_envs, arch.image_size), key=k_run,
+                    games=reset_games(game, env_params, k_env, cfg.num_envs, arch), key=k_run,
                     step=jnp.zeros((), jnp.int32))
 
 
@@ -200,7 +200,7 @@ def transition(arch: ArchConfig, game, params, env_params, c: tuple[Games, jax.A
     key, k_act, k_game = jax.random.split(key, 3)
     logits, value = policy_value(arch, params, games.obs)
     action = sample_action(k_act, logits)
-    after, _, reward, stats = step_games(game, env_params, games, action, k_game, arch.image_size)
+    after, _, reward, stats = step_games(game, env_params, games, action, k_game, arch)
     record = {"obs": games.obs, "action": action, "log_prob": log_prob(logits, action), "value": value,
               "reward": reward, "done": stats["done"], "finished_return": stats["finished_return"],
               "finished_length": stats["finished_length"]}
@@ -338,17 +338,16 @@ ppo_step = jax.jit(ppo_step_fn, static_argnums=(0, 1, 2), donate_argnums=3)
 def ppo_policy_fns(arch: ArchConfig, greedy: bool = True):
     """(init, step) of a PPO policy for one game, its parameters an argument (`init(key,
     params)`, `step(key, state, obs, params)`; one pair per architecture, so a program playing it
-    compiles once for any parameters): the game's frame is resized to `arch.image_size`; greedy
+    compiles once for any parameters): the game's frame is seen as `model_obs` shows it; greedy
     presses a button when its probability exceeds 0.5, otherwise each button is sampled with the
     key given to `step`."""
-    size = arch.image_size
 
     def init(key, params):
         del key, params
         return jnp.zeros((), jnp.float32)
 
     def step(key, state, obs, params):
-        logits, _ = policy_value(arch, params, resize_obs(obs, size)[None])
+        logits, _ = policy_value(arch, params, model_obs(obs, arch)[None])
         action = (logits[0] > 0.0).astype(jnp.float32) if greedy else sample_action(key, logits[0])
         return action, state
 
