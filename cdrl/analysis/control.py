@@ -317,7 +317,8 @@ def curves_figure(results: dict):
         frames = np.array([p[0] for p in curves[0][:n]])
         values = np.array([[p[1] for p in c[:n]] for c in curves])
         mean = values.mean(axis=0)
-        ax.plot(frames, mean, marker="o", color=f"C{i}", label=f"{name} ({len(curves)} seeds)")
+        seeds = f"{len(curves)} seed" + ("s" if len(curves) != 1 else "")
+        ax.plot(frames, mean, marker="o", color=f"C{i}", label=f"{name} ({seeds})")
         if len(curves) > 1:
             half = scipy.stats.t.ppf(0.975, len(curves) - 1) * values.std(axis=0, ddof=1) / np.sqrt(len(curves))
             ax.fill_between(frames, mean - half, mean + half, color=f"C{i}", alpha=0.15, linewidth=0)

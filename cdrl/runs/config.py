@@ -85,7 +85,8 @@ class RunConfig:
 
     variant: str = _opt("main", "model variant, or ppo (see `cdrl variants`)")
     preset: str = _opt("small", "architecture preset: thesis (150x150, LSTM 512), small (64x64), small-128 (its "
-                                "networks on 128x128), small-max (small, the frame shrunk after a 5x5 max filter) or tiny")
+                                "networks on 128x128), small-max (small, the frame shrunk after a 5x5 max filter) "
+                                "or tiny")
     recipe: str = _opt(DEFAULT_RECIPE, f"training recipe filling the options it names: {' or '.join(RECIPES)}")
     data: str = _opt("game", "'game' (collect from the built-in game and cache it), 'synthetic', or a data set directory")
     level: str = _opt("thesis", "level of the built-in game (data collection and online play): thesis, flat, sparse, "
