@@ -120,7 +120,7 @@ def test_eval_options_are_refused_by_name(stubbed, capsys, option):
 
 
 @pytest.mark.parametrize("option", ["--episodes", "--seed", "--episode-steps", "--obs-size", "--batch-size",
-                                    "--devices"])
+                                    "--devices", "--max-filter"])
 def test_collect_options_are_accepted_by_design_or_refused_by_name(stubbed, capsys, option):
     for value in VALUES:
         _check(["collect", "D", option, value], option, (option, value) in COLLECT_ACCEPTED, stubbed, capsys)
@@ -151,7 +151,7 @@ def test_the_sweep_of_values_covers_every_numeric_option_of_every_command():
                                     | {"--probe-steps", "--threshold", "--candidates"})
     assert numeric["eval"] == {"--episodes", "--horizon", "--context"}
     assert numeric["collect"] == {"--episodes", "--seed", "--episode-steps", "--obs-size", "--crop", "--batch-size",
-                                  "--devices"}
+                                  "--devices", "--max-filter"}
     assert numeric["plot"] == numeric["variants"] == set()
     assert {name for name, _ in ACCEPTED} <= set(NUMERIC)
 
