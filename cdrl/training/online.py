@@ -94,7 +94,8 @@ def step_games(game, env_params, games: Games, executed: jax.Array, key, arch):
     """Every game one step on the `executed` actions `[B, A]`; a game that ends is replaced by
     a new one at once, every frame as a model of architecture `arch` sees it (`model_obs`).
     Returns (games after the step, the frames o_{t+1} the step led to, the rewards r_{t+1},
-    statistics `reward`, `done`, `finished_return`, `finished_length` and `action`). What the game returns carries no gradient: it is not differentiable."""
+    statistics `reward`, `done`, `finished_return`, `finished_length` and `action`). What the
+    game returns carries no gradient: it is not differentiable."""
     k_env, k_reset = jax.random.split(key)
     executed = jax.lax.stop_gradient(executed)
     nxt, env_state, reward, term, trunc, _ = jax.vmap(game.step, in_axes=(0, 0, 0, None))(
