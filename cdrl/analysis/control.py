@@ -18,6 +18,8 @@ greedy buttons. The reference policies play the same games once: they do not lea
   real-pre-all-open  `real-pre-all` on reward_prediction (open loop on observations)
   real-pre-all-open-bal  the same, its pre-training also teaching the core the reward balanced over
                 its sign classes (`reward_balanced_weight` 0.003: a pellet eaten weighs as much as none)
+  real-pre-all-bal  `real-pre-all` pre-trained with the same balanced term: against
+                `real-pre-all-open-bal`, does closed loop − help?
   real-all      `real-pre-all` without the pre-training (the model from scratch on Adam, as `critic`)
   critic-pre    `critic` on a world model learnt offline first (`--controller none`, on the data
                 the run collects: 60 episodes of uniform-random play) and trained on online
@@ -69,6 +71,9 @@ CONFIGS: dict[str, dict] = {
     "real-pre-all-open-bal": {"variant": "reward_prediction", "controller": "real", "scope": "all", "noise_std": 0.05,
                               "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "controller": "none",
                                                               "reward_balanced_weight": 0.003}},
+    "real-pre-all-bal": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
+                         "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none",
+                                                         "reward_balanced_weight": 0.003}},
     "real-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
                  "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
     "ppo": {"variant": "ppo"},
