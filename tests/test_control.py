@@ -352,6 +352,25 @@ def test_the_experiment_counts_a_pretrained_world_models_data(tmp_path):
     assert np.isfinite(seed["pretrain"]["excess_ratio"]) and np.isfinite(seed["excess_ratio_held_out"])
 
 
+@pytest.mark.parametrize("closed, opened", [("real-pre-all-bal", "real-pre-all-open-bal"),
+                                             ("real-pre-all", "real-pre-all-open"), ("critic", "critic-open")])
+def test_the_closed_loop_comparisons_differ_in_the_variant_alone(closed, opened):
+    """Each pair the experiment reads as "does closed loop − help?" runs the same options, its
+    pre-training too, but for the variant: final_proposal (x_t = o_t − õ_t) against the open-loop
+    reward_prediction."""
+    budget = control.BUDGETS["full"]
+
+    def fields(cfg):
+        return None if cfg is None else {k: v for k, v in dataclasses.asdict(cfg).items() if k != "init_from"}
+
+    for make in (lambda n: control.config_of(n, budget, 3), lambda n: control.pretrain_config(n, budget, 3)):
+        a, b = fields(make(closed)), fields(make(opened))
+        assert (a is None) == (b is None), (closed, opened)
+        if a is not None:
+            assert (a.pop("variant"), b.pop("variant")) == ("final_proposal", "reward_prediction")
+            assert a == b, {k: (a[k], b[k]) for k in a if a[k] != b[k]}
+
+
 def _seed_result(ret, references, length=180.0):
     return {"return": ret, "length": length, "frames": 96, "curve": [[48, ret - 1.0], [96, ret]],
             "references": references, "excess_ratio_held_out": 0.5 + ret / 10,
