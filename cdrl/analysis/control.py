@@ -74,6 +74,8 @@ CONFIGS: dict[str, dict] = {
     "real-pre-all-bal": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
                          "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none",
                                                          "reward_balanced_weight": 0.003}},
+    "critic-pre-bal": {"variant": "final_proposal", "controller": "critic",
+                       "pretrain": {"variant": "final_proposal", "controller": "none", "reward_balanced_weight": 0.003}},
     "real-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
                  "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
     "ppo": {"variant": "ppo"},
