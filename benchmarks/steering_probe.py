@@ -2,8 +2,8 @@
 
 The privileged policy (`envs.policies.privileged_policy`) plays `--games` training games (seeds
 0, 1, ...; a fifth of its steps replaced by random turns, so that the data holds recoveries),
-while the run's world model, teacher-forced on the frames and the buttons executed, gives its
-core output h_t at every step. Ridge regressions fit the privileged policy's turn buttons at
+while the run's world model, teacher-forced on the frames and the buttons executed
+(`followed_play`), gives its core output h_t at every step. Ridge regressions fit the privileged policy's turn buttons at
 t + 1 (the step the controller's output at t acts in) from h_t, and, as the reference, from the
 pixels of o_{t+1} (what the privileged choice at t + 1 was made on), on 85 % of the steps; the
 rest give each probe's held-out accuracy. Then the probe on h, fitted on every step, plays as a
@@ -18,8 +18,10 @@ given, and so whether its features or its learning rule limit it.
 
 RUN_DIR: a controller variant's run on the built-in game (an offline world model, `--controller
 none`, or an online run). Ends with one JSON line. (The results in benchmarks/results/ were made
-before the exploration draw moved into `envs.policies.random_turns_instead`; a re-run draws other
-exploratory steps.)
+before the exploration draw moved into `envs.policies.random_turns_instead`, and with the model
+given, at o_t, the buttons executed at o_{t-1} instead of those executed at o_t, one step behind
+the convention it was trained on; a re-run draws other exploratory steps and gives the model the
+buttons as it was trained.)
 """
 from __future__ import annotations
 
@@ -51,36 +53,17 @@ def predict(fit, x: np.ndarray) -> np.ndarray:
 
 def collect(variant, params, game, env_params, games: int, max_steps: int):
     """Per game and step: h_t, the privileged policy's buttons, whether the game was on, and
-    o_t at the model's resolution; a fifth of the steps execute random turns instead."""
+    o_t at the model's resolution (`followed_play`: a fifth of the steps random turns)."""
     import jax
     import jax.numpy as jnp
 
-    from cdrl.data.frames import model_obs
-    from cdrl.models.base import StepInput
-    from envs.policies import privileged_policy, random_turns_instead
+    from followed_play import follow_step, start
 
-    privileged = privileged_policy(game)
+    body = follow_step(variant, params, game, env_params, EXPLORE)
 
     @jax.jit
     def run(keys):
-        def one(key):
-            k_reset, k_run = jax.random.split(key)
-            obs, state = game.reset(k_reset, env_params)
-
-            def body(c, _):
-                state, obs, carry, action, first, key, alive = c
-                key, k_policy, k_explore, k_env = jax.random.split(key, 4)
-                frame = model_obs(obs, variant.arch)[None]
-                carry, _ = variant.step(params, carry, StepInput(obs=frame, action=action[None], is_first=first))
-                label, _ = privileged.step(k_policy, None, obs, state, env_params)
-                executed = random_turns_instead(k_explore, label, EXPLORE)
-                obs, state, _, term, trunc, _ = game.step(k_env, state, executed, env_params)
-                nxt = (state, obs, carry, executed, jnp.zeros((1,), bool), key, alive & ~(term | trunc))
-                return nxt, (variant.features(carry)[0], label, alive, frame[0])
-
-            c0 = (state, obs, variant.init_carry(1), jnp.zeros(3), jnp.ones((1,), bool), k_run, jnp.array(True))
-            return jax.lax.scan(body, c0, None, length=max_steps)[1]
-
+        one = lambda key: jax.lax.scan(body, start(variant, game, env_params, key), None, length=max_steps)[1]  # noqa: E731
         return jax.vmap(one)(keys)
 
     return [np.asarray(x) for x in run(jax.vmap(jax.random.PRNGKey)(jnp.arange(games)))]
