@@ -18,7 +18,12 @@ Reported for the returns summed over the first k imagined steps (k in `--ks`):
 - `best_steer_agree`: over the starts where the three steering sequences' real returns have one
   best, the share where imagination ranks that one first (chance: 1/3);
 - `best_share_real`, `best_share_imagined`: over those starts, how often each steering sequence
-  is the best (in the game; in imagination): a preference for one direction whatever the state;
+  is the best (in the game; in imagination): a preference for one direction whatever the state.
+  The largest real share is what always naming that one sequence would agree (the privileged
+  policy steers towards pellets, so straight on is often best), the bar `best_steer_agree` has
+  to clear to show that imagination tells the states apart;
+- `mean_real`, `mean_imagined`: each sequence's mean return over the starts (an imagination
+  that promises more than the game gives is one a controller can exploit);
 - `accelerate_gap`: the mean real and imagined return of straight-on accelerating minus
   straight on (the cost of accelerating, which imagination is known to see).
 
@@ -108,6 +113,8 @@ def scores(real: np.ndarray, imagined: np.ndarray, ks) -> dict:
             "starts_with_one_best": int(unique.sum()),
             "best_share_real": (np.bincount(np.argmax(rs[unique], 1), minlength=STEER) / max(1, unique.sum())).tolist(),
             "best_share_imagined": (np.bincount(np.argmax(is_[unique], 1), minlength=STEER) / max(1, unique.sum())).tolist(),
+            "mean_real": r.mean(0).tolist(),
+            "mean_imagined": i.mean(0).tolist(),
             "accelerate_gap_real": float(np.mean(r[:, 3] - r[:, 0])),
             "accelerate_gap_imagined": float(np.mean(i[:, 3] - i[:, 0])),
         }
