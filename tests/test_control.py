@@ -371,6 +371,18 @@ def test_the_closed_loop_comparisons_differ_in_the_variant_alone(closed, opened)
             assert a == b, {k: (a[k], b[k]) for k in a if a[k] != b[k]}
 
 
+@pytest.mark.parametrize("imagined, real", [("critic-pre-bal", "real-pre-all-bal")])
+def test_the_imagination_comparison_shares_its_world_models_pre_training(imagined, real):
+    """The pair read as "does the actor-critic in imagination control where the one on real
+    returns does?" starts from the same pre-trained world model (the same pre-training run for
+    every seed) and differs online in the controller."""
+    budget = control.BUDGETS["full"]
+    for seed in (0, 3):
+        assert control.pretrain_config(imagined, budget, seed) == control.pretrain_config(real, budget, seed)
+        a, b = control.config_of(imagined, budget, seed), control.config_of(real, budget, seed)
+        assert (a.variant, a.controller, b.controller) == (b.variant, "critic", "real")
+
+
 def _seed_result(ret, references, length=180.0):
     return {"return": ret, "length": length, "frames": 96, "curve": [[48, ret - 1.0], [96, ret]],
             "references": references, "excess_ratio_held_out": 0.5 + ret / 10,

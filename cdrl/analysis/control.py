@@ -24,6 +24,8 @@ greedy buttons. The reference policies play the same games once: they do not lea
   critic-pre    `critic` on a world model learnt offline first (`--controller none`, on the data
                 the run collects: 60 episodes of uniform-random play) and trained on online
                 (`--init-from`); its game frames count the pre-training data's
+  critic-pre-bal  `critic` on `real-pre-all-bal`'s world model (the same pre-training): does the
+                actor-critic in imagination control where the one on real returns does?
   ppo           PPO at the same game frames; ppo-10x at ten times them
 
 Runs live under a work directory, one per configuration and seed (`NAME/seedS`); a finished
