@@ -3,9 +3,9 @@
 The privileged policy (`envs.policies.privileged_policy`) plays `--games` training games (seeds
 0, 1, ...; a fifth of its steps replaced by random turns, so that the data holds recoveries),
 while the run's world model, teacher-forced on the frames and the buttons executed
-(`followed_play`), gives its core output h_t at every step. Ridge regressions fit the privileged policy's turn buttons at
-t + 1 (the step the controller's output at t acts in) from h_t, and, as the reference, from the
-pixels of o_{t+1} (what the privileged choice at t + 1 was made on), on 85 % of the steps; the
+(`followed_play`), gives its core output h_t at every step. Ridge regressions fit the privileged
+policy's turn buttons at t + 1 (the step the controller's output at t acts in) from h_t, and, as
+the reference, from the pixels of o_{t+1} (what the privileged choice at t + 1 was made on), on 85 % of the steps; the
 rest give each probe's held-out accuracy. Then the probe on h, fitted on every step, plays as a
 controller (turn buttons pressed where its output is above 0, accelerate never) on the control
 experiment's 64 held-out games, beside never-accelerate and the privileged policy.
@@ -61,10 +61,10 @@ def collect(variant, params, game, env_params, games: int, max_steps: int):
 
     body = follow_step(variant, params, game, env_params, EXPLORE)
 
-    @jax.jit
-    def run(keys):
-        one = lambda key: jax.lax.scan(body, start(variant, game, env_params, key), None, length=max_steps)[1]  # noqa: E731
-        return jax.vmap(one)(keys)
+    def one(key):
+        return jax.lax.scan(body, start(variant, game, env_params, key), None, length=max_steps)[1]
+
+    run = jax.jit(jax.vmap(one))
 
     return [np.asarray(x) for x in run(jax.vmap(jax.random.PRNGKey)(jnp.arange(games)))]
 
