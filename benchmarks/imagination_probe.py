@@ -16,7 +16,7 @@ Reported for the returns summed over the first k imagined steps (k in `--ks`):
   start's mean over them: whether imagination sees what steering changes, the part of the
   return a controller's choice of direction decides;
 - `best_steer_agree`: over the starts where the three steering sequences' real returns have one
-  best, the share where imagination ranks that one first (chance: 1/3);
+  best, the share where imagination ranks that one first (a random ranking: 1/3);
 - `best_share_real`, `best_share_imagined`: over those starts, how often each steering sequence
   is the best (in the game; in imagination): a preference for one direction whatever the state.
   The largest real share is what always naming that one sequence would agree (the privileged
@@ -103,16 +103,16 @@ def scores(real: np.ndarray, imagined: np.ndarray, ks) -> dict:
         r, i = real[..., :k].sum(-1), imagined[..., :k].sum(-1)
         rs, is_ = r[:, :STEER], i[:, :STEER]
         dr, di = rs - rs.mean(1, keepdims=True), is_ - is_.mean(1, keepdims=True)
-        best = rs.max(1, keepdims=True)
-        unique = (rs == best).sum(1) == 1
+        unique = (rs == rs.max(1, keepdims=True)).sum(1) == 1
+        n = int(unique.sum())
+        best_r, best_i = np.argmax(rs[unique], 1), np.argmax(is_[unique], 1)
         out[str(k)] = {
             "corr_all": float(np.corrcoef(r.ravel(), i.ravel())[0, 1]),
-            "corr_steer": float(np.corrcoef(dr[unique].ravel(), di[unique].ravel())[0, 1]) if unique.any() else None,
-            "best_steer_agree": float(np.mean(np.argmax(is_[unique], 1) == np.argmax(rs[unique], 1)))
-            if unique.any() else None,
-            "starts_with_one_best": int(unique.sum()),
-            "best_share_real": (np.bincount(np.argmax(rs[unique], 1), minlength=STEER) / max(1, unique.sum())).tolist(),
-            "best_share_imagined": (np.bincount(np.argmax(is_[unique], 1), minlength=STEER) / max(1, unique.sum())).tolist(),
+            "corr_steer": float(np.corrcoef(dr[unique].ravel(), di[unique].ravel())[0, 1]) if n else None,
+            "best_steer_agree": float(np.mean(best_i == best_r)) if n else None,
+            "starts_with_one_best": n,
+            "best_share_real": (np.bincount(best_r, minlength=STEER) / max(1, n)).tolist(),
+            "best_share_imagined": (np.bincount(best_i, minlength=STEER) / max(1, n)).tolist(),
             "mean_real": r.mean(0).tolist(),
             "mean_imagined": i.mean(0).tolist(),
             "accelerate_gap_real": float(np.mean(r[:, 3] - r[:, 0])),
