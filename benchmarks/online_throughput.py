@@ -17,6 +17,8 @@ With `--baseline DIR` (a checkout of another commit, e.g. `git worktree add /tmp
 each configuration also runs from DIR's code, in a second process, the two timed in
 alternating windows (which goes first alternates too): `speedup` is the median [min, max] of
 the per-repeat ratios (this tree / DIR), both commits measured in one run under the same load.
+A checkout from before `cdrl.runs.online.learner` (8b48636, where the speed issue's figures
+were taken) can be the baseline of `rollout`: its program is built as that checkout built it.
 
     .venv/bin/python benchmarks/online_throughput.py --baseline /tmp/base --out FILE
     .venv/bin/python benchmarks/online_throughput.py --quick       # seconds: does it run?
@@ -62,13 +64,21 @@ class _Program:
 
         jax.config.update("jax_enable_compilation_cache", False)  # compile times are real compiles
         from cdrl.runs.config import RunConfig
-        from cdrl.runs.online import learner as build
+        try:
+            from cdrl.runs.online import learner as build
+        except ImportError:  # a checkout from before the learners' builder
+            build = None
 
         options = dict(LEARNERS[learner], preset=preset, seed=0)
         if learner != "ppo":
             options["batch"] = games
-        cfg = RunConfig(**options)
-        self.program = build(cfg)
+        if build is not None:
+            cfg = RunConfig(**options)
+            self.program = build(cfg)
+        elif learner == "rollout":
+            cfg, self.program = _rollout_before_builder(preset, games)
+        else:
+            raise ValueError(f"learner {learner!r}: this checkout has no cdrl.runs.online.learner to build it")
         self.state = self.program.fresh(0)
         jax.block_until_ready(self.state)
         self.frames_per_step = cfg.batch * cfg.unroll
@@ -91,6 +101,30 @@ class _Program:
             self._step()
             n += 1
         return n * self.frames_per_step / (time.perf_counter() - t0)
+
+
+def _rollout_before_builder(preset: str, games: int):
+    """(config, program) of the thesis's online learner as checkouts from before
+    `cdrl.runs.online.learner` build it (e.g. 8b48636, where the speed issue's "today" was
+    measured): the same program, `final_proposal` with the reward ascent through the chunk."""
+    import types
+
+    import jax
+
+    from cdrl.models import make_variant
+    from cdrl.runs.config import RunConfig
+    from cdrl.runs.online import hparams
+    from cdrl.runs.sources import run_game
+    from cdrl.training.online import OnlineConfig, init_online, online_step
+
+    cfg = RunConfig(variant="final_proposal", preset=preset, batch=games, seed=0)
+    variant = make_variant(cfg.variant, cfg.arch)
+    game, env_params = run_game(cfg)
+    ocfg, hp = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll), hparams(cfg)
+    init = jax.jit(init_online, static_argnums=(0, 1, 3))
+    return cfg, types.SimpleNamespace(
+        fresh=lambda seed: init(variant, game, env_params, ocfg, jax.random.PRNGKey(seed), hp),
+        program=lambda state: online_step(variant, game, ocfg, state, hp, env_params))
 
 
 def _worker(root: str, learner: str, preset: str, games: int, conn) -> None:

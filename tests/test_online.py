@@ -213,3 +213,27 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
         _same(np.asarray(a), np.asarray(b))
     _same(np.asarray(after.obs), np.asarray(online.model_obs(obs, ARCH)))
     _same(np.asarray(after.episode_length), np.asarray(games3.episode_length) + 1)
+
+
+def test_the_update_is_sgd_on_the_model_gradient_minus_the_scoped_ascent(game):
+    """The step's first update from zero momentum, -lr * (g_model - lambda * g_reward) with the
+    ascent's share of every group but D_a scaled by ascent_all, against the two gradients taken
+    apart by `jax.grad` of the chunk's model loss and of its mean predicted reward."""
+    g, env_params = game
+    v, cfg, _, state = _state(game)
+    params = state.train.params
+
+    def term(p, hp, i):
+        return online._rollout(v, g, cfg, p, state, hp, env_params)[0][i]
+
+    for scope in ("controller", "all"):
+        hp = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope=scope)
+        new, _ = STEP(v, g, cfg, state, hp, env_params)
+        g_model, g_reward = jax.grad(term)(params, hp, 0), jax.grad(term)(params, hp, 1)
+        for group in params:
+            share = 1.0 if (group in v.controller_groups or scope == "all") else 0.0
+            expected = jax.tree.map(lambda p, m, r: p - 0.1 * (m - 0.5 * share * r),
+                                    params[group], g_model[group], g_reward[group])
+            for got, want, r in zip(jax.tree.leaves(new.train.params[group]), jax.tree.leaves(expected),
+                                    jax.tree.leaves(g_reward[group])):
+                np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * (1 + float(np.abs(r).max())))

@@ -214,10 +214,10 @@ def _rollout(variant: Variant, game, cfg: OnlineConfig, params, state: OnlineSta
     return (model_loss, pred_reward), (new_state, terms, stats, noise_std)
 
 
-def _ascent_scope(variant: Variant, tree, ascent_all):
-    """The ascent gradient restricted to the controller D_a, or everywhere when `ascent_all`."""
-    return {k: (v if k in variant.controller_groups else jax.tree.map(lambda x: ascent_all * x, v))
-            for k, v in tree.items()}
+def _add_ascent_rest(variant: Variant, shared, reward, rest):
+    """`shared` plus `rest` times `reward` on the controller D_a's parameters; `shared` elsewhere."""
+    return {k: (jax.tree.map(lambda s, r: s + rest * r, v, reward[k]) if k in variant.controller_groups else v)
+            for k, v in shared.items()}
 
 
 def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState, hp: OnlineHParams, env_params):
@@ -227,9 +227,14 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
         lambda p: _rollout(variant, game, cfg, p, state, hp, env_params), params, has_aux=True)
     active = (state.train.step.astype(jnp.float32) >= hp.warmup_steps).astype(jnp.float32)
     lam = hp.ascent * active
-    (g_model,) = vjp((jnp.ones(()), jnp.zeros(())))
-    (g_reward,) = vjp((jnp.zeros(()), jnp.ones(())))
-    grads = jax.tree.map(lambda m, r: m - lam * r, g_model, _ascent_scope(variant, g_reward, hp.ascent_all))
+    # The gradient of model_loss − lam * pred_reward, the ascent on D_a's parameters only unless
+    # `ascent_all`: one backward pass gives every parameter the model's gradient and the ascent's
+    # share that reaches all of them (lam * ascent_all); a second adds the rest of the ascent to
+    # D_a. That pass's gradients of the other parameters are never used, so XLA leaves their
+    # computation out (the kernel gradients and their sums over the chunk's steps).
+    (shared,) = vjp((jnp.ones(()), -lam * hp.ascent_all))
+    (reward,) = vjp((jnp.zeros(()), jnp.ones(())))
+    grads = _add_ascent_rest(variant, shared, reward, -lam * (1.0 - hp.ascent_all))
     new_params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, params, state.train.opt_state, grads,
                                                   model_loss)
     # A refused update keeps the old parameters; the games go on.
