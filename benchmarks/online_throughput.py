@@ -28,6 +28,7 @@ One JSON line at the end (`--out FILE` also writes it there).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing as mp
 import os
 import statistics
@@ -51,6 +52,10 @@ def _parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--repeats", type=int, default=None, help="windows per configuration (default 5; --quick: 2)")
     ap.add_argument("--baseline", default=None, metavar="DIR",
                     help="also run each configuration from another checkout, alternating windows with this tree's")
+    ap.add_argument("--this-malloc", choices=["system", "command"], default="system",
+                    help="this tree's programs on glibc's malloc (default) or on the one the `cdrl` command picks "
+                         "(tcmalloc where installed); the baseline's always on glibc's, as the command ran "
+                         "before it picked one (a056e15)")
     ap.add_argument("--quick", action="store_true", help="tiny preset, short windows: a smoke run")
     ap.add_argument("--out", default=None, help="also write the JSON line to this file")
     return ap.parse_args(argv)
@@ -136,7 +141,7 @@ def _worker(root: str, learner: str, preset: str, games: int, conn) -> None:
     if not os.path.abspath(cdrl.__file__).startswith(os.path.abspath(root) + os.sep):
         raise RuntimeError(f"cdrl imported from {cdrl.__file__}, not from {root}")
     p = _Program(learner, preset, games)
-    conn.send({**p.describe, "compile_s": p.compile_s})
+    conn.send({**p.describe, "compile_s": p.compile_s, "malloc": os.environ.get("CDRL_MALLOC_PRELOADED", "system")})
     while (seconds := conn.recv()) is not None:
         conn.send(p.window(seconds))
 
@@ -144,6 +149,22 @@ def _worker(root: str, learner: str, preset: str, games: int, conn) -> None:
 def _spread(values) -> dict:
     return {"repeats": [round(v, 3) for v in values], "min": min(values), "median": statistics.median(values),
             "max": max(values)}
+
+
+@contextlib.contextmanager
+def _malloc(choice: str):
+    """This process's environment, for the while, preloading the malloc `choice` picks
+    (`cdrl.runs.allocator`: "command" as the `cdrl` command picks it, "system" glibc's)."""
+    from cdrl.runs.allocator import allocator_library, preload_environment
+
+    env = preload_environment(dict(os.environ), allocator_library("auto" if choice == "command" else "system"))
+    saved = dict(os.environ)
+    os.environ.update(env or {})
+    try:
+        yield
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
 
 
 def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> dict:
@@ -156,7 +177,8 @@ def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> di
     for root in roots:  # one after the other: each compiles on an otherwise idle machine
         mine, theirs = ctx.Pipe()
         w = ctx.Process(target=_worker, args=(root, learner, preset, args.games, theirs))
-        w.start()
+        with _malloc(args.this_malloc if root == ROOT else "system"):
+            w.start()  # a spawned process starts with the environment of this moment
         pipes.append(mine)
         workers.append(w)
         described.append(recv_or_fail(mine, w))
@@ -164,6 +186,7 @@ def measure(learner: str, preset: str, args, seconds: float, repeats: int) -> di
     row = {**described[0], "frames_per_s": _spread(rates[0])}
     if args.baseline:
         row["baseline_compile_s"] = described[1]["compile_s"]
+        row["baseline_malloc"] = described[1]["malloc"]
         row["baseline_frames_per_s"] = _spread(rates[1])
         row["speedup"] = _spread([a / b for a, b in zip(rates[0], rates[1])])
     return row
