@@ -17,8 +17,8 @@ With `--baseline DIR` (a checkout of another commit, e.g. `git worktree add /tmp
 each configuration also runs from DIR's code, in a second process, the two timed in
 alternating windows (which goes first alternates too): `speedup` is the median [min, max] of
 the per-repeat ratios (this tree / DIR), both commits measured in one run under the same load.
-A checkout from before `cdrl.runs.online.learner` (8b48636, where the speed issue's figures
-were taken) can be the baseline of `rollout`: its program is built as that checkout built it.
+A checkout from before `cdrl.runs.online.learner` (such as 8b48636, the reference of the speed
+targets) can be the baseline of `rollout`: its program is built as that checkout built it.
 
     .venv/bin/python benchmarks/online_throughput.py --baseline /tmp/base --out FILE
     .venv/bin/python benchmarks/online_throughput.py --quick       # seconds: does it run?
@@ -110,8 +110,8 @@ class _Program:
 
 def _rollout_before_builder(preset: str, games: int):
     """(config, program) of the thesis's online learner as checkouts from before
-    `cdrl.runs.online.learner` build it (e.g. 8b48636, where the speed issue's "today" was
-    measured): the same program, `final_proposal` with the reward ascent through the chunk."""
+    `cdrl.runs.online.learner` build it (such as 8b48636, the reference of the speed targets):
+    the same program, `final_proposal` with the reward ascent through the chunk."""
     import types
 
     import jax
