@@ -5,7 +5,10 @@ Each learner is the program `cdrl train` builds for it (`cdrl.runs.online.learne
 model acting in them for T steps and learning from them, all in one jitted step. Frames per
 step are B x T (the games' steps). Learners (`--learners`, any subset):
 
-  rollout   final_proposal, the thesis's online learner (reward ascent through the chunk)
+  rollout   final_proposal, the thesis's online learner (reward ascent through the chunk), the
+            ascent on from the first update (`--warmup-steps 0`: before it is on, a step takes
+            one backward pass less, as with `--scope all`)
+  rollout-all  the same with `--scope all`
   real      final_proposal with the replay buffer, 4 model updates a chunk and the actor-critic
             on the chunk just played (`--controller real --scope all`)
   ppo       PPO's program at its own 16 games x 32 steps
@@ -18,7 +21,8 @@ each configuration also runs from DIR's code, in a second process, the two timed
 alternating windows (which goes first alternates too): `speedup` is the median [min, max] of
 the per-repeat ratios (this tree / DIR), both commits measured in one run under the same load.
 A checkout from before `cdrl.runs.online.learner` (such as 8b48636, the reference of the speed
-targets) can be the baseline of `rollout`: its program is built as that checkout built it.
+targets) can be the baseline of `rollout` and `rollout-all`: its program is built as that
+checkout built it.
 
     .venv/bin/python benchmarks/online_throughput.py --baseline /tmp/base --out FILE
     .venv/bin/python benchmarks/online_throughput.py --quick       # seconds: does it run?
@@ -37,7 +41,8 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEARNERS = {
-    "rollout": dict(variant="final_proposal", controller="rollout"),
+    "rollout": dict(variant="final_proposal", controller="rollout", warmup_steps=0),
+    "rollout-all": dict(variant="final_proposal", controller="rollout", scope="all", warmup_steps=0),
     "real": dict(variant="final_proposal", controller="real", scope="all"),
     "ppo": dict(variant="ppo"),
 }
@@ -80,8 +85,8 @@ class _Program:
         if build is not None:
             cfg = RunConfig(**options)
             self.program = build(cfg)
-        elif learner == "rollout":
-            cfg, self.program = _rollout_before_builder(preset, games)
+        elif options.pop("controller", None) == "rollout":
+            cfg, self.program = _rollout_before_builder(options)
         else:
             raise ValueError(f"learner {learner!r}: this checkout has no cdrl.runs.online.learner to build it")
         self.state = self.program.fresh(0)
@@ -108,10 +113,11 @@ class _Program:
         return n * self.frames_per_step / (time.perf_counter() - t0)
 
 
-def _rollout_before_builder(preset: str, games: int):
+def _rollout_before_builder(options: dict):
     """(config, program) of the thesis's online learner as checkouts from before
     `cdrl.runs.online.learner` build it (such as 8b48636, the reference of the speed targets):
-    the same program, `final_proposal` with the reward ascent through the chunk."""
+    the same program, `final_proposal` with the reward ascent through the chunk, from the
+    `RunConfig` options of `options` (their only learner then)."""
     import types
 
     import jax
@@ -122,7 +128,7 @@ def _rollout_before_builder(preset: str, games: int):
     from cdrl.runs.sources import run_game
     from cdrl.training.online import OnlineConfig, init_online, online_step
 
-    cfg = RunConfig(variant="final_proposal", preset=preset, batch=games, seed=0)
+    cfg = RunConfig(**options)
     variant = make_variant(cfg.variant, cfg.arch)
     game, env_params = run_game(cfg)
     ocfg, hp = OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll), hparams(cfg)

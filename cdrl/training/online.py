@@ -215,7 +215,8 @@ def _rollout(variant: Variant, game, cfg: OnlineConfig, params, state: OnlineSta
 
 
 def _add_ascent_rest(variant: Variant, shared, reward, rest):
-    """`shared` plus `rest` times `reward` on the controller D_a's parameters; `shared` elsewhere."""
+    """`shared` plus `rest` times `reward` (D_a's groups only) on the controller D_a's parameters;
+    `shared` elsewhere."""
     return {k: (jax.tree.map(lambda s, r: s + rest * r, v, reward[k]) if k in variant.controller_groups else v)
             for k, v in shared.items()}
 
@@ -230,11 +231,22 @@ def online_step_fn(variant: Variant, game, cfg: OnlineConfig, state: OnlineState
     # The gradient of model_loss − lam * pred_reward, the ascent on D_a's parameters only unless
     # `ascent_all`: one backward pass gives every parameter the model's gradient and the ascent's
     # share that reaches all of them (lam * ascent_all); a second adds the rest of the ascent to
-    # D_a. That pass's gradients of the other parameters are never used, so XLA leaves their
-    # computation out (the kernel gradients and their sums over the chunk's steps).
+    # D_a, and only D_a's gradient is taken from it, so XLA leaves the others' computation out
+    # (the kernel gradients and their sums over the chunk's steps). There is no rest before the
+    # ascent is on or with `ascent_all`: the second pass is then skipped (under `vmap`, a sweep
+    # over the scope or the warm-up, `lax.cond` runs both branches and the pass is always taken).
+    rest = -lam * (1.0 - hp.ascent_all)
     (shared,) = vjp((jnp.ones(()), -lam * hp.ascent_all))
-    (reward,) = vjp((jnp.zeros(()), jnp.ones(())))
-    grads = _add_ascent_rest(variant, shared, reward, -lam * (1.0 - hp.ascent_all))
+
+    def reward_gradient():
+        (reward,) = vjp((jnp.zeros(()), jnp.ones(())))
+        return {k: reward[k] for k in variant.controller_groups}
+
+    def no_rest():
+        return {k: jax.tree.map(jnp.zeros_like, params[k]) for k in variant.controller_groups}
+
+    reward = jax.lax.cond(rest != 0.0, reward_gradient, no_rest)
+    grads = _add_ascent_rest(variant, shared, reward, rest)
     new_params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, params, state.train.opt_state, grads,
                                                   model_loss)
     # A refused update keeps the old parameters; the games go on.
