@@ -403,7 +403,8 @@ def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
     from cdrl.runs.online import learner
     from cdrl.training.online import init_online, online_step
 
-    cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed)
+    # The ascent on from the first update: the steady state (before it is on, a step takes one backward pass less).
+    cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed, warmup_steps=0)
     program = learner(cfg)
     variant, game, env_params, ocfg, hp = program.model, program.game, program.env_params, program.config, program.hp
     key = jax.random.PRNGKey(cfg.seed)
