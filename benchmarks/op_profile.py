@@ -126,22 +126,20 @@ def _train_program(args):
     """(call, compiled text, description) of the train step on random uint8 frames."""
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     from cdrl.data.stream import Chunk
     from cdrl.models import make_variant
     from cdrl.models.arch import PRESETS
     from cdrl.training.optim import HParams
     from cdrl.training.step import init_state, train_step
+    from train_throughput import _chunk_arrays
 
     batch, unroll = args.batch or 1, args.unroll
     arch = PRESETS[args.preset]
     variant = make_variant(args.variant, arch)
     hp = HParams.create(variant, lr=0.1, momentum=0.9)
-    frames = np.random.default_rng(0).integers(0, 256, (unroll + 1, batch, arch.image_size, arch.image_size), np.uint8)
-    is_first = np.zeros((unroll, batch), bool)
-    is_first[0] = True
-    chunk = Chunk(obs=jnp.asarray(frames[:-1]), next_obs=jnp.asarray(frames[1:]),
+    obs, next_obs, is_first = _chunk_arrays(arch, unroll, batch, 0)
+    chunk = Chunk(obs=jnp.asarray(obs), next_obs=jnp.asarray(next_obs),
                   action=jnp.zeros((unroll, batch, arch.action_dim), jnp.float32),
                   reward=jnp.zeros((unroll, batch), jnp.float32), is_first=jnp.asarray(is_first))
     box = [init_state(variant, jax.random.PRNGKey(0), batch, hp)]
