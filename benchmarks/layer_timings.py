@@ -17,6 +17,11 @@ train step has, so the sum of the rows is not the step time (the README's train-
 table has that). The LSTM row is T steps of the cell over B streams (forward: a
 `lax.scan` / a Python loop; backward through time), input projection included.
 
+With `--bf16` every row also times cdrl's same layer on bfloat16 arrays (input, weights and
+cotangent cast; the layer computed as XLA's backend computes bfloat16), `ratio_bf16` = float32
+time / bfloat16 time (> 1: bfloat16 faster), and its forward's largest deviation from float32's
+relative to the output's scale: whether a bfloat16 option would pay on this CPU, layer by layer.
+
 Every repeat times cdrl then torch back to back (`--repeats`, each the median of
 `--inner` calls); the table gives medians and the ratio torch time / cdrl time (> 1: cdrl
 faster). Prints the table, then ONE JSON line (`--out FILE` writes it there too).
@@ -47,6 +52,7 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--inner", type=int, default=3, help="calls per repeat (their median is the repeat's time)")
     ap.add_argument("--torch-threads", type=int, default=None, help="default os.cpu_count()")
+    ap.add_argument("--bf16", action="store_true", help="also time cdrl's layers on bfloat16 arrays")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     for name in ("unroll", "repeats", "inner"):
@@ -151,12 +157,15 @@ def bench_conv(layer, n: int, args) -> dict:
     def c_fwd_bwd():
         jax.block_until_ready(fwd_bwd(jx, jk, jb, jct))
 
+    fns = {"cdrl": {"fwd": c_fwd, "fwd_bwd": c_fwd_bwd}, "torch": {"fwd": t_fwd, "fwd_bwd": t_fwd_bwd}}
+    extra = _bf16_fns(fns, fwd, fwd_bwd, (jx, jk, jb), (jct,)) if args.bf16 else {}
     # Same function: cdrl's forward equals torch's (a wrong formulation must not be timed).
     np.testing.assert_allclose(np.asarray(fwd(jx, jk, jb)), t_fwd().numpy().transpose(0, 2, 3, 1),
                                rtol=2e-3, atol=2e-3 * float(np.abs(ct).max()))
-    for f in (c_fwd, c_fwd_bwd, t_fwd, t_fwd_bwd):
-        f()  # compile / warm up
-    return _time_pairs({"fwd": c_fwd, "fwd_bwd": c_fwd_bwd}, {"fwd": t_fwd, "fwd_bwd": t_fwd_bwd}, args) | {
+    for fw in fns.values():
+        for f in fw.values():
+            f()  # compile / warm up
+    return _time_pairs(fns, args) | extra | {
         "layer": name, "kind": kind, "c_in": c_in, "c_out": c_out, "in_size": size, "out_size": out_size,
         "frames": n}
 
@@ -217,23 +226,46 @@ def bench_lstm(arch, T: int, B: int, args) -> dict:
     def c_fwd_bwd():
         jax.block_until_ready(fwd_bwd(params, jk, jct))
 
+    fns = {"cdrl": {"fwd": c_fwd, "fwd_bwd": c_fwd_bwd}, "torch": {"fwd": t_fwd, "fwd_bwd": t_fwd_bwd}}
+    extra = _bf16_fns(fns, fwd, fwd_bwd, (params, jk), (jct,)) if args.bf16 else {}
     with torch.no_grad():
         np.testing.assert_allclose(np.asarray(fwd(params, jk)), t_unroll().numpy(), rtol=1e-4, atol=1e-4)
-    for f in (c_fwd, c_fwd_bwd, t_fwd, t_fwd_bwd):
-        f()
-    return _time_pairs({"fwd": c_fwd, "fwd_bwd": c_fwd_bwd}, {"fwd": t_fwd, "fwd_bwd": t_fwd_bwd}, args) | {
+    for fw in fns.values():
+        for f in fw.values():
+            f()
+    return _time_pairs(fns, args) | extra | {
         "layer": "lstm", "kind": "lstm", "c_in": code, "c_out": H, "in_size": 1, "out_size": 1, "frames": T * B}
 
 
-def _time_pairs(cdrl_fns: dict, torch_fns: dict, args) -> dict:
-    """Alternating repeats; per framework and pass the median time in ms and its spread."""
-    times = {(fw, p): [] for fw in ("cdrl", "torch") for p in ("fwd", "fwd_bwd")}
+def _bf16_fns(fns: dict, fwd, fwd_bwd, inputs: tuple, cotangents: tuple) -> dict:
+    """Add cdrl's layer on bfloat16 copies of `inputs` and `cotangents` to `fns` (as
+    "cdrl_bf16"); returns its forward's largest deviation from float32's, relative to the
+    largest float32 output."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    def half(tree):
+        return jax.tree.map(lambda a: a.astype(jnp.bfloat16), tree)
+
+    h_in, h_ct = half(inputs), half(cotangents)
+    fns["cdrl_bf16"] = {"fwd": lambda: jax.block_until_ready(fwd(*h_in)),
+                        "fwd_bwd": lambda: jax.block_until_ready(fwd_bwd(*h_in, *h_ct))}
+    full = np.asarray(fwd(*inputs), np.float32)
+    low = np.asarray(fwd(*h_in).astype(jnp.float32))
+    return {"bf16_max_rel_dev": float(np.abs(low - full).max() / max(float(np.abs(full).max()), 1e-12))}
+
+
+def _time_pairs(fns: dict, args) -> dict:
+    """Alternating repeats of each framework's {"fwd", "fwd_bwd"} functions (cdrl, torch, and
+    cdrl_bf16 where given); per framework and pass the median time in ms and its spread."""
+    times = {(fw, p): [] for fw in fns for p in ("fwd", "fwd_bwd")}
     for _ in range(args.repeats):
         for p in ("fwd", "fwd_bwd"):
-            times[("cdrl", p)].append(_median_time(cdrl_fns[p], args.inner))
-            times[("torch", p)].append(_median_time(torch_fns[p], args.inner))
+            for fw in fns:
+                times[(fw, p)].append(_median_time(fns[fw][p], args.inner))
     out = {}
-    for fw in ("cdrl", "torch"):
+    for fw in fns:
         f = statistics.median(times[(fw, "fwd")])
         fb = statistics.median(times[(fw, "fwd_bwd")])
         out[fw] = {"fwd_ms": 1e3 * f, "bwd_ms": 1e3 * (fb - f), "fwd_bwd_ms": 1e3 * fb,
@@ -241,6 +273,9 @@ def _time_pairs(cdrl_fns: dict, torch_fns: dict, args) -> dict:
     out["ratio_fwd"] = out["torch"]["fwd_ms"] / out["cdrl"]["fwd_ms"]
     out["ratio_fwd_bwd"] = out["torch"]["fwd_bwd_ms"] / out["cdrl"]["fwd_bwd_ms"]
     out["ratio_fwd_bwd_repeats"] = [t / c for c, t in zip(times[("cdrl", "fwd_bwd")], times[("torch", "fwd_bwd")])]
+    if "cdrl_bf16" in fns:
+        out["ratio_bf16"] = out["cdrl"]["fwd_bwd_ms"] / out["cdrl_bf16"]["fwd_bwd_ms"]
+        out["ratio_bf16_repeats"] = [c / h for c, h in zip(times[("cdrl", "fwd_bwd")], times[("cdrl_bf16", "fwd_bwd")])]
     return out
 
 
@@ -264,23 +299,37 @@ def main() -> None:
         _print_row(rows[-1])
     res = {"benchmark": "layer_timings", "preset": args.preset, "unroll": args.unroll, "batches": args.batches,
            "repeats": args.repeats, "inner": args.inner, "cpu_count": os.cpu_count(),
-           "torch_threads": torch.get_num_threads(), "jax_version": jax.__version__,
+           "torch_threads": torch.get_num_threads(), "jax_version": jax.__version__, "bf16": args.bf16,
+           "cpu_bf16_support": _cpu_bf16_flags(),
            "torch_version": torch.__version__, "load_avg_start": load_start, "rows": rows}
     for B in args.batches:
         sel = [r for r in rows if r["batch"] == B]
-        res[f"total_B{B}"] = {fw: sum(r[fw]["fwd_bwd_ms"] for r in sel) for fw in ("cdrl", "torch")}
+        res[f"total_B{B}"] = {fw: sum(r[fw]["fwd_bwd_ms"] for r in sel) for fw in ("cdrl", "torch", "cdrl_bf16")
+                              if fw in sel[0]}
         print(f"B {B}: sum of rows fwd+bwd: cdrl {res[f'total_B{B}']['cdrl']:.1f} ms, "
-              f"torch {res[f'total_B{B}']['torch']:.1f} ms")
+              f"torch {res[f'total_B{B}']['torch']:.1f} ms"
+              + (f", cdrl in bfloat16 {res[f'total_B{B}']['cdrl_bf16']:.1f} ms" if args.bf16 else ""))
     res["load_avg_end"] = os.getloadavg()[0]
     warn_if_busy(res, load_start, res["load_avg_end"])
     emit(res, args.out)
 
 
+def _cpu_bf16_flags() -> list[str]:
+    """This CPU's bfloat16 instructions (AVX-512 BF16, AMX) as Linux lists them; [] elsewhere."""
+    try:
+        flags = next(line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags"))
+    except (OSError, StopIteration):
+        return []
+    return sorted(f for f in flags.split(":", 1)[1].split() if f in ("avx512_bf16", "amx_bf16", "amx_tile"))
+
+
 def _print_row(r: dict) -> None:
     c, t = r["cdrl"], r["torch"]
+    half = (f" | bf16 fwd+bwd {r['cdrl_bf16']['fwd_bwd_ms']:7.2f} ms, f32/bf16 {r['ratio_bf16']:5.2f}"
+            if "cdrl_bf16" in r else "")
     print(f"B {r['batch']:2d} {r['layer']:6s} {r['c_in']:4d}->{r['c_out']:<4d} {r['in_size']:3d}->{r['out_size']:<3d} "
           f"fwd cdrl {c['fwd_ms']:7.2f} torch {t['fwd_ms']:7.2f} ms | bwd cdrl {c['bwd_ms']:7.2f} "
-          f"torch {t['bwd_ms']:7.2f} ms | fwd+bwd torch/cdrl {r['ratio_fwd_bwd']:5.2f}", flush=True)
+          f"torch {t['bwd_ms']:7.2f} ms | fwd+bwd torch/cdrl {r['ratio_fwd_bwd']:5.2f}{half}", flush=True)
 
 
 if __name__ == "__main__":
