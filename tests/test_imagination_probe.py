@@ -1,14 +1,12 @@
 """benchmarks/imagination_probe.py's scores against direct computations, and the play its probes
 follow (`benchmarks/followed_play.py`) against the model stepped by hand."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import benchmark_scripts
 import games
 from cdrl.data.frames import model_obs
 from cdrl.models import make_variant
@@ -16,12 +14,8 @@ from cdrl.models.arch import TINY
 from cdrl.models.base import StepInput
 from envs.policies import privileged_policy
 
-_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.append(str(_DIR))  # the script imports its neighbour `common`
-_spec = importlib.util.spec_from_file_location("imagination_probe", _DIR / "imagination_probe.py")
-ip = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(ip)
-from followed_play import follow_step, start  # noqa: E402  (benchmarks/, on sys.path above)
+ip = benchmark_scripts.load("imagination_probe")
+from followed_play import follow_step, start  # noqa: E402  (benchmarks/, on sys.path: benchmark_scripts.load)
 
 
 def _rewards(seed, starts=200, horizon=6):

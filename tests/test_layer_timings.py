@@ -1,19 +1,14 @@
 """benchmarks/layer_timings.py: the bfloat16 rows compute in bfloat16 and the ratios read the
 right way round (time over time, > 1: the second faster)."""
-import importlib.util
-import sys
 import types
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.append(str(_DIR))  # the script imports its neighbour `common`
-_spec = importlib.util.spec_from_file_location("layer_timings", _DIR / "layer_timings.py")
-lt = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(lt)
+import benchmark_scripts
+
+lt = benchmark_scripts.load("layer_timings")
 
 
 def test_the_bfloat16_layer_runs_in_bfloat16_and_deviates_from_float32_by_its_rounding():

@@ -1,18 +1,13 @@
 """benchmarks/op_profile.py: the trace's operations summed per call and by kind, and each
 operation's shape and origin read from a compiled program's text."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import pytest
 
-_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.append(str(_DIR))  # the script imports its neighbour `common`
-_spec = importlib.util.spec_from_file_location("op_profile", _DIR / "op_profile.py")
-op = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(op)
+import benchmark_scripts
+
+op = benchmark_scripts.load("op_profile")
 
 
 def _event(name, dur, ph="X"):

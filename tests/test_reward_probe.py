@@ -1,15 +1,10 @@
 """benchmarks/reward_probe.py's targets and scores, against direct computations."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 
-_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.append(str(_DIR))  # the script imports its neighbour `common`
-_spec = importlib.util.spec_from_file_location("reward_probe", _DIR / "reward_probe.py")
-rp = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(rp)
+import benchmark_scripts
+
+rp = benchmark_scripts.load("reward_probe")
 
 
 def test_pellets_ahead_sums_the_discounted_positive_rewards_of_the_episode():

@@ -4,8 +4,6 @@ same weights and data give the same loss, gradients, final carry and SGD-momentu
 `make test` runs this file compiled at XLA's default optimisation level (the `default_opt`
 mark, tests/conftest.py): the programs users run.
 """
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,11 +20,9 @@ from cdrl.models.arch import THESIS, TINY  # noqa: E402
 from cdrl.training.optim import HParams, make_optimizer  # noqa: E402
 from cdrl.training.step import TrainState, chunk_loss, ratio_names, train_step_fn  # noqa: E402
 
+import benchmark_scripts  # noqa: E402
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "torch_reference.py"
-_spec = importlib.util.spec_from_file_location("torch_reference", _PATH)
-tr = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(tr)
+tr = benchmark_scripts.load("torch_reference")
 
 VARIANTS = ("main", "closed_loop_minus")
 _FAST_COMPILE = {"xla_backend_optimization_level": 0}
