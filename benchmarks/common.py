@@ -2,7 +2,8 @@
 at the end (printed, and written atomically to `--out FILE` when given).
 
 The scripts run as `python benchmarks/NAME.py`, so this folder is on `sys.path` and they
-import it as `common`.
+import it as `common`. The studies of experiments/ put the repository root on `sys.path` and
+import it as `benchmarks.common`.
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ For each variant (`main`, `closed_loop_minus`) and batch size B (1 and 8), one p
   * cdrl: `cdrl.training.step.train_step` (jitted, the variant a static argument, the state donated;
     SGD lr 0.1, momentum 0.9 with the divergence monitor and the keep-the-old-state-on-
     divergence selects, exactly what `cdrl train` runs), and
-  * torch: `benchmarks/torch_reference.py` (eager PyTorch, same network, same loss,
+  * torch: `reference/torch_model.py` (eager PyTorch, same network, same loss,
     torch.optim.SGD(lr 0.1, momentum 0.9), the same norm-ratio monitor, carry detached
     between chunks), `torch.set_num_threads(os.cpu_count())`,
 
@@ -303,7 +303,7 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
     import numpy as np
     import torch
 
-    import torch_reference as tr
+    from reference import torch_model as tr
     from cdrl.data.stream import Chunk
     from cdrl.models import make_variant
     from cdrl.training.optim import HParams

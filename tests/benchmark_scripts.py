@@ -1,4 +1,7 @@
-"""The scripts of benchmarks/ as modules, for the tests of what they compute."""
+"""The scripts of benchmarks/ as modules, for the tests of what they compute.
+
+The studies of experiments/ need no loader: they are a package, and the tests import them from
+the repository root (pytest's `pythonpath`), e.g. `from experiments.controller import study`."""
 import importlib.util
 import sys
 from pathlib import Path

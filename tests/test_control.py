@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 import games
-from cdrl.analysis import control
 from cdrl.evaluation import play
 from cdrl.models import make_variant
 from cdrl.models.arch import TINY
 from cdrl.training import dream
 from cdrl.training.optim import HParams, OptHParams
 from envs.policies import get_policy, privileged_policy
+from experiments.controller import study
 
 SEEDS = np.arange(1000, 1016)
 
@@ -338,13 +338,13 @@ def test_the_experiment_counts_a_pretrained_world_models_data(tmp_path):
     pre-training's own figures are reported."""
     from cdrl.runs.rundir import RunDir
 
-    budget = control.BUDGETS["tiny"]
-    results = control.run_experiment(["critic-pre"], budget, [0], tmp_path)
+    budget = study.BUDGETS["tiny"]
+    results = study.run_experiment(["critic-pre"], budget, [0], tmp_path)
     seed = results["configs"]["critic-pre"]["seeds"]["0"]
     pre = RunDir(tmp_path / "critic-pre" / "pretrain0").read_config()
     online = RunDir(tmp_path / "critic-pre" / "seed0").read_config()
     assert pre.kind == "offline" and pre.steps == budget.pretrain_steps and online.init_from.endswith("pretrain0")
-    train, _ = control.load_episodes(pre, tmp_path / "critic-pre" / "data-cache")
+    train, _ = study.load_episodes(pre, tmp_path / "critic-pre" / "data-cache")
     data_frames = sum(len(train[i].frames) for i in range(len(train)))
     assert seed["pretrain"]["data_frames"] == data_frames > 0
     assert seed["frames"] == online.steps * online.batch * online.unroll + data_frames
@@ -358,12 +358,12 @@ def test_the_closed_loop_comparisons_differ_in_the_variant_alone(closed, opened)
     """Each pair the experiment reads as "does closed loop − help?" runs the same options, its
     pre-training too, but for the variant: final_proposal (x_t = o_t − õ_t) against the open-loop
     reward_prediction."""
-    budget = control.BUDGETS["full"]
+    budget = study.BUDGETS["full"]
 
     def fields(cfg):
         return None if cfg is None else {k: v for k, v in dataclasses.asdict(cfg).items() if k != "init_from"}
 
-    for make in (lambda n: control.config_of(n, budget, 3), lambda n: control.pretrain_config(n, budget, 3)):
+    for make in (lambda n: study.config_of(n, budget, 3), lambda n: study.pretrain_config(n, budget, 3)):
         a, b = fields(make(closed)), fields(make(opened))
         assert (a is None) == (b is None), (closed, opened)
         if a is not None:
@@ -376,10 +376,10 @@ def test_the_imagination_comparison_shares_its_world_models_pre_training(imagine
     """The pair read as "does the actor-critic in imagination control where the one on real
     returns does?" starts from the same pre-trained world model (the same pre-training run for
     every seed) and differs online in the controller."""
-    budget = control.BUDGETS["full"]
+    budget = study.BUDGETS["full"]
     for seed in (0, 3):
-        assert control.pretrain_config(imagined, budget, seed) == control.pretrain_config(real, budget, seed)
-        a, b = control.config_of(imagined, budget, seed), control.config_of(real, budget, seed)
+        assert study.pretrain_config(imagined, budget, seed) == study.pretrain_config(real, budget, seed)
+        a, b = study.config_of(imagined, budget, seed), study.config_of(real, budget, seed)
         assert (a.variant, a.controller, b.controller) == (b.variant, "critic", "real")
 
 
@@ -390,14 +390,14 @@ def _seed_result(ret, references, length=180.0):
 
 
 def _results(per_config, references, seeds, **budget):
-    return {"budget": {**dataclasses.asdict(control.BUDGETS["tiny"]), **budget, "seeds": seeds},
+    return {"budget": {**dataclasses.asdict(study.BUDGETS["tiny"]), **budget, "seeds": seeds},
             "references": references,
             "configs": {name: _row(name, {str(s): _seed_result(r, references) for s, r in rows.items()})
                         for name, rows in per_config.items()}}
 
 
 def _row(name, per_seed):
-    return control.summarise(control.CONFIGS[name], per_seed)
+    return study.summarise(study.CONFIGS[name], per_seed)
 
 
 REFS = {"never_accelerate": {"mean_return": 2.5, "ci95": [2.0, 3.0], "episodes": 4, "mean_length": 180.0}}
@@ -409,7 +409,7 @@ def test_merged_results_pool_the_seeds_and_recompute_the_figures_across_them():
     formula with t(0.975, 2 dof) = 4.3027 from the table."""
     a = _results({"critic": {0: 1.0, 1: 3.0}, "ppo": {0: 5.0}}, REFS, [0, 1], name="full")
     b = _results({"critic": {2: 2.0}}, REFS, [2], name="full")
-    merged = control.merge([a, b])
+    merged = study.merge([a, b])
     row = merged["configs"]["critic"]
     assert list(row["seeds"]) == ["0", "1", "2"] and merged["budget"]["seeds"] == [0, 1, 2]
     assert row["return"]["per_seed"] == [1.0, 3.0, 2.0]
@@ -426,37 +426,38 @@ def test_merging_refuses_results_of_other_games_budgets_or_conflicting_seeds():
     a = _results({"critic": {0: 1.0}}, REFS, [0])
     other_games = {"never_accelerate": {**REFS["never_accelerate"], "mean_return": 2.6}}
     with pytest.raises(ValueError, match="other held-out games"):
-        control.merge([a, _results({"critic": {1: 2.0}}, other_games, [1])])
+        study.merge([a, _results({"critic": {1: 2.0}}, other_games, [1])])
     with pytest.raises(ValueError, match="differs in frames, level"):
-        control.merge([a, _results({"critic": {1: 2.0}}, REFS, [1], frames=192, level="heading")])
+        study.merge([a, _results({"critic": {1: 2.0}}, REFS, [1], frames=192, level="heading")])
     with pytest.raises(ValueError, match="seed 0 of configuration 'critic' differs"):
-        control.merge([a, _results({"critic": {0: 1.5}}, REFS, [0])])
+        study.merge([a, _results({"critic": {0: 1.5}}, REFS, [0])])
     with pytest.raises(ValueError, match="not a control experiment's result"):
-        control.merge([a, {"configs": {}}])
-    assert control.merge([a, a])["configs"]["critic"]["return"]["per_seed"] == [1.0]  # the same seed twice
+        study.merge([a, {"configs": {}}])
+    assert study.merge([a, a])["configs"]["critic"]["return"]["per_seed"] == [1.0]  # the same seed twice
     read_back = json.loads(json.dumps(_results({"critic": {1: 2.0}}, REFS, [1])))  # tuples become lists
-    assert control.merge([a, read_back])["configs"]["critic"]["return"]["per_seed"] == [1.0, 2.0]
+    assert study.merge([a, read_back])["configs"]["critic"]["return"]["per_seed"] == [1.0, 2.0]
 
 
-def test_the_benchmark_merges_result_files_and_names_a_bad_one(tmp_path):
-    """`benchmarks/controller.py --merge` writes `cdrl.analysis.control.merge`'s result and the
+def test_the_study_merges_result_files_and_names_a_bad_one(tmp_path):
+    """`python -m experiments.controller.study --merge` writes `study.merge`'s result and the
     files it came from; an unreadable file is named in the error and nothing is written."""
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "controller.py"
+    script = ["-m", "experiments.controller.study"]
+    root = Path(__file__).resolve().parents[1]
     a = _results({"critic": {0: 1.0, 1: 3.0}}, REFS, [0, 1], name="full")
     b = _results({"critic": {2: 2.0}}, REFS, [2], name="full")
     (tmp_path / "a.json").write_text(json.dumps(a))
     (tmp_path / "b.json").write_text(json.dumps(b))
     out = tmp_path / "merged.json"
-    subprocess.run([sys.executable, str(script), "--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
-                    "--out", str(out)], check=True, capture_output=True, text=True)
+    subprocess.run([sys.executable, *script, "--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                    "--out", str(out)], check=True, capture_output=True, text=True, cwd=root)
     merged = json.loads(out.read_text())
     assert merged.pop("merged_from") == [str(tmp_path / "a.json"), str(tmp_path / "b.json")]
-    assert merged == json.loads(json.dumps(control.merge([a, b])))
+    assert merged == json.loads(json.dumps(study.merge([a, b])))
 
     (tmp_path / "broken.json").write_text("{\"budget\": ")
-    bad = subprocess.run([sys.executable, str(script), "--merge", str(tmp_path / "a.json"),
+    bad = subprocess.run([sys.executable, *script, "--merge", str(tmp_path / "a.json"),
                           str(tmp_path / "broken.json"), "--out", str(tmp_path / "never.json")],
-                         capture_output=True, text=True)
+                         capture_output=True, text=True, cwd=root)
     assert bad.returncode != 0 and "broken.json" in bad.stderr and not (tmp_path / "never.json").exists()
 
 

@@ -1,21 +1,19 @@
-"""benchmarks/imagination_probe.py's scores against direct computations, and the play its probes
-follow (`benchmarks/followed_play.py`) against the model stepped by hand."""
+"""experiments/control_probes/imagination_probe.py's scores against direct computations, and the
+play its probes follow (`followed_play.py` beside it) against the model stepped by hand."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import benchmark_scripts
 import games
 from cdrl.data.frames import model_obs
 from cdrl.models import make_variant
 from cdrl.models.arch import TINY
 from cdrl.models.base import StepInput
 from envs.policies import privileged_policy
-
-ip = benchmark_scripts.load("imagination_probe")
-from followed_play import follow_step, start  # noqa: E402  (benchmarks/, on sys.path: benchmark_scripts.load)
+from experiments.control_probes import imagination_probe as ip
+from experiments.control_probes.followed_play import follow_step, start
 
 
 def _rewards(seed, starts=200, horizon=6):

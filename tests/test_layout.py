@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent / "cdrl"
-LAYERS = ["models", "data", "training", "evaluation", "runs", "analysis", "cli"]
+LAYERS = ["models", "data", "training", "evaluation", "learners", "runs", "analysis", "cli"]
 
 
 def module_name(path: Path) -> str:
@@ -94,3 +94,51 @@ def cdrl_imports_any(path: Path) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module:
             names.add(node.module.split(".")[0])
     return names
+
+
+REPO = ROOT.parent
+# benchmarks/ measures speed and scaling only; the research studies live in experiments/.
+BENCHMARK_SCRIPTS = {"allocator.py", "common.py", "env_throughput.py", "layer_timings.py", "online_throughput.py",
+                     "op_profile.py", "scaling.py", "sweep_throughput.py", "train_throughput.py"}
+# Basenames that two modules still share, each to be renamed by issue 45's item 4. Remove a name
+# once it is unique; add none.
+SHARED_BASENAMES_TO_RENAME = {"allocator.py", "frames.py", "online.py", "writer.py"}
+
+
+def repo_modules() -> list[Path]:
+    """Every Python module of the repository outside virtual environments and hidden folders."""
+    return [p for p in REPO.rglob("*.py")
+            if not any(part.startswith(".") or part in ("venv", "build") for part in p.relative_to(REPO).parts)]
+
+
+def test_benchmarks_hold_throughput_and_scaling_only():
+    scripts = {p.name for p in (REPO / "benchmarks").glob("*.py")}
+    assert scripts == BENCHMARK_SCRIPTS, f"new in benchmarks/: {sorted(scripts - BENCHMARK_SCRIPTS)}; " \
+                                         f"gone: {sorted(BENCHMARK_SCRIPTS - scripts)} (studies go in experiments/)"
+
+
+def test_each_study_has_its_log_and_its_results_stay_beside_it():
+    studies = [p for p in (REPO / "experiments").iterdir() if p.is_dir() and (p / "__init__.py").is_file()]
+    assert {p.name for p in studies} >= {"controller", "control_probes", "learning", "world_models"}
+    for study in studies:
+        log = (study / "LOG.md").read_text()
+        for result in (study / "results").glob("*"):
+            assert f"results/{result.name}" in log, f"{result} is not named in {study.name}/LOG.md"
+
+
+def test_no_two_modules_share_a_basename():
+    by_name: dict[str, list[str]] = {}
+    for p in repo_modules():
+        if p.name != "__init__.py":
+            by_name.setdefault(p.name, []).append(str(p.relative_to(REPO)))
+    shared = {name: paths for name, paths in by_name.items() if len(paths) > 1}
+    new = {name: paths for name, paths in shared.items() if name not in SHARED_BASENAMES_TO_RENAME}
+    assert not new, f"modules that share a basename: {new}"
+
+
+def test_the_library_imports_no_study_benchmark_or_reference():
+    """cdrl is installed alone (pyproject's package discovery): it cannot import the folders
+    that stay in the repository."""
+    outside = {"experiments", "benchmarks", "reference"}
+    wrong = [str(p.relative_to(REPO)) for p in ROOT.rglob("*.py") if cdrl_imports_any(p) & outside]
+    assert not wrong, wrong

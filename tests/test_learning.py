@@ -1,6 +1,6 @@
 """Learning is pinned: `main` with the default recipe, on a small seeded data set of the
 built-in game, predicts held-out frames better than copying the last frame within a fixed
-number of steps (benchmarks/time_to_quality.py measures how fast, in seconds)."""
+number of steps (experiments/learning/time_to_quality.py measures how fast, in seconds)."""
 import json
 
 import pytest

@@ -1,10 +1,8 @@
-"""benchmarks/reward_probe.py's targets and scores, against direct computations."""
+"""experiments/control_probes/reward_probe.py's targets and scores, against direct computations."""
 
 import numpy as np
 
-import benchmark_scripts
-
-rp = benchmark_scripts.load("reward_probe")
+from experiments.control_probes import reward_probe as rp
 
 
 def test_pellets_ahead_sums_the_discounted_positive_rewards_of_the_episode():

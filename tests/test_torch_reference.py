@@ -1,4 +1,4 @@
-"""cdrl's JAX programs against the eager PyTorch reference (benchmarks/torch_reference.py):
+"""cdrl's JAX programs against the eager PyTorch reference (reference/torch_model.py):
 same weights and data give the same loss, gradients, final carry and SGD-momentum updates.
 
 `make test` runs this file compiled at XLA's default optimisation level (the `default_opt`
@@ -20,9 +20,7 @@ from cdrl.models.arch import THESIS, TINY  # noqa: E402
 from cdrl.training.optim import HParams, make_optimizer  # noqa: E402
 from cdrl.training.step import TrainState, chunk_loss, ratio_names, train_step_fn  # noqa: E402
 
-import benchmark_scripts  # noqa: E402
-
-tr = benchmark_scripts.load("torch_reference")
+from reference import torch_model as tr  # noqa: E402
 
 VARIANTS = ("main", "closed_loop_minus")
 _FAST_COMPILE = {"xla_backend_optimization_level": 0}

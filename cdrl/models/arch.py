@@ -129,7 +129,7 @@ SMALL = ArchConfig(
 # 4 to the same 32 x 32 x 8 that the small preset's first layer makes of 64 x 64, the rest (and
 # the decoder's mirror) is the small preset's. At 64 x 64 the thesis level's pellets (radius 2 of the
 # raw pixels) brighten about 4 pixels by a fifth of the range, at 128 x 128 about 8 by a half
-# (`benchmarks/pellet_contrast.py`).
+# (`experiments/control_probes/pellet_contrast.py`).
 SMALL_128 = dataclasses.replace(
     SMALL,
     image_size=128,
@@ -139,7 +139,7 @@ SMALL_128 = dataclasses.replace(
 # The small preset on frames shrunk after a 5 x 5 max filter: at 64 x 64 the thesis level's pellets
 # then brighten about 15 pixels by three quarters of the range, as the pellets of level `visible`
 # (drawn at a snake segment's radius) do at 64 x 64 without it, where the plain area average leaves
-# 4 pixels at a fifth (`benchmarks/pellet_contrast.py --max-filter 5`); the snakes widen by about
+# 4 pixels at a fifth (`experiments/control_probes/pellet_contrast.py --max-filter 5`); the snakes widen by about
 # one pixel.
 SMALL_MAX = dataclasses.replace(SMALL, max_filter=5)
 

@@ -7,11 +7,11 @@ frames. The rows walk from the thesis's recipe to the `fast` recipe one change a
 (`path-*`), then try other leads on top of `fast` (`alt-*`) and take single changes back out
 of it (`ablate-*`). Every row trains the same
 number of frames, so curves compare per frame seen; seconds are in each configuration's
-metrics (fps) and in benchmarks/time_to_quality.py.
+metrics (fps) and in experiments/learning/time_to_quality.py.
 
-    .venv/bin/python benchmarks/learning_leads.py --out benchmarks/results/learning_leads.json \\
-        --figure benchmarks/results/learning_leads.png
-    .venv/bin/python benchmarks/learning_leads.py --rows path-thesis path-fast --frames 4096 --quick
+    .venv/bin/python experiments/learning/learning_leads.py --out experiments/learning/results/learning_leads.json \\
+        --figure experiments/learning/results/learning_leads.png
+    .venv/bin/python experiments/learning/learning_leads.py --rows path-thesis path-fast --frames 4096 --quick
 
 The JSON line holds, per row and configuration, the curve (frames, excess ratio), the ratio
 at the end and the frames at which it first fell below 1; and per row the mean and min/max
@@ -33,7 +33,10 @@ from cdrl.analysis.plots import held_out_ratios, save_figure
 from cdrl.analysis.report import load_run
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, sweep_run
-from common import emit
+
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 # name -> (what changes, RunConfig options, grid); a grid without seeds takes --seeds, the
 # alternatives on top of `fast` take seed 0 only (a lead, not a verdict).

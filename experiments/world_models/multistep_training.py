@@ -7,13 +7,13 @@ game (small preset, `fast` recipe, its 60 collected episodes), then the held-out
 its predictions fed back for 15 steps after 8 real frames (`cdrl.evaluation.multistep`): step 1
 is the one-step prediction, 1 at step k is as good as holding the last real frame k steps.
 
-    .venv/bin/python benchmarks/multistep_training.py --work-dir DIR [--seeds 0 1 2] \\
+    .venv/bin/python experiments/world_models/multistep_training.py --work-dir DIR [--seeds 0 1 2] \\
         [--curricula 1 1,3,5] [--steps 4000] [--out FILE]
 
 A finished run in DIR is read back, an unfinished one resumed. Ends with one JSON line: per
 curriculum and seed the ratios at every step, and per curriculum the mean with a 95 % CI across
 seeds at k = 1, 5, 10, 15
-(`cdrl.analysis.control.across`).
+(`cdrl.evaluation.stats.across`).
 """
 from __future__ import annotations
 
@@ -22,7 +22,9 @@ import sys
 import time
 from pathlib import Path
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 STEPS_REPORTED = (1, 5, 10, 15)
 
@@ -38,7 +40,7 @@ def main(argv=None) -> int:
     parser.add_argument("--horizon", type=int, default=15)
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
-    from cdrl.analysis.control import across
+    from cdrl.evaluation.stats import across
     from cdrl.analysis.report import load_run, restore_model, run_episodes
     from cdrl.evaluation.multistep import multistep_scores
     from cdrl.runs.config import RunConfig

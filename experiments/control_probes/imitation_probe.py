@@ -2,7 +2,7 @@
 
 The privileged policy (`envs.policies.privileged_policy`) plays `--games` training games (seeds
 0, 1, ...; a fifth of its steps replaced by random turns, so that the data holds recoveries);
-PPO's network (`cdrl.training.ppo`: the small preset's observation encoder, a SELU torso, one
+PPO's network (`cdrl.learners.ppo`: the small preset's observation encoder, a SELU torso, one
 logit a button; the frames standardised by their mean and deviation) learns its buttons from
 the frame it chose them on, by the per-button BCE (Adam, `--lr`, minibatches of `--batch`).
 Every `--eval-every` updates the network plays, pressing a button where its logit is above 0,
@@ -31,7 +31,7 @@ same frames, and is scored on the frames of 32 other privileged games (seeds 500
 (cos, sin) and the median and 90th percentile of the angle's error. It asks whether the frame
 shows the heading that a north-up policy must read before it steers.
 
-    .venv/bin/python benchmarks/imitation_probe.py [--level thesis] [--camera north] [--augment d4]
+    .venv/bin/python experiments/control_probes/imitation_probe.py [--level thesis] [--camera north] [--augment d4]
         [--target buttons|heading] [--turn read-heading] [--out FILE]
 
 Ends with one JSON line.
@@ -43,8 +43,11 @@ import dataclasses
 import functools
 import sys
 import time
+from pathlib import Path
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 EXPLORE = 0.2  # the share of the privileged policy's steps replaced by random turns
 
@@ -104,7 +107,7 @@ def heading_scores(predicted, heading):
 
 def heading_of(arch, params, frames):
     """The heading network's (cos, sin) of frames `[N, S, S]`."""
-    from cdrl.training import ppo
+    from cdrl.learners import ppo
 
     return HEADING_SCALE * ppo.policy_value(arch, params, frames)[0][..., :2]
 
@@ -117,7 +120,7 @@ def turned_policy(arch):
     import jax.numpy as jnp
 
     from cdrl.data.frames import resize_obs
-    from cdrl.training import ppo
+    from cdrl.learners import ppo
     from envs import symmetry
 
     def init(key, params):
@@ -141,7 +144,7 @@ def symmetrised_policy(arch):
     import jax.numpy as jnp
 
     from cdrl.data.frames import resize_obs
-    from cdrl.training import ppo
+    from cdrl.learners import ppo
     from envs import symmetry
 
     def init(key, params):
@@ -191,7 +194,7 @@ def main(argv=None) -> int:
 
     from cdrl.evaluation.play import EVAL_SEED, compare_policies
     from cdrl.models.arch import PRESETS
-    from cdrl.training import ppo
+    from cdrl.learners import ppo
     from envs import symmetry
     from envs.slither import LEVEL_GAMES, Slither, level_game, level_params
 

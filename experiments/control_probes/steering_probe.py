@@ -14,14 +14,15 @@ It measures what a controller that only reads the world model's features (`--con
 --scope controller`) could reach if it learnt the privileged policy's choices with their answers
 given, and so whether its features or its learning rule limit it.
 
-    .venv/bin/python benchmarks/steering_probe.py RUN_DIR [--games 128] [--out FILE]
+    .venv/bin/python experiments/control_probes/steering_probe.py RUN_DIR [--games 128] [--out FILE]
 
 RUN_DIR: a controller variant's run on the built-in game (an offline world model, `--controller
-none`, or an online run). Ends with one JSON line. (The results in benchmarks/results/ were made
-before the exploration draw moved into `envs.policies.random_turns_instead`, and with the model
-given, at o_t, the buttons executed at o_{t-1} instead of those executed at o_t, one step behind
-the convention it was trained on; a re-run draws other exploratory steps and gives the model the
-buttons as it was trained.)
+none`, or an online run). Ends with one JSON line.
+
+The figures of its first runs (LOG.md, with their commit) came from older code. The exploration
+draw was not yet `envs.policies.random_turns_instead`. The model was given, at o_t, the buttons
+executed at o_{t-1}: one step behind its training. Their result files are deleted; a re-run
+draws other exploratory steps and gives the model the buttons as trained.
 """
 from __future__ import annotations
 
@@ -31,7 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 RIDGE = 10.0  # the probes' L2 penalty, on standardised inputs
 EXPLORE = 0.2  # the share of the privileged policy's steps replaced by random turns
@@ -57,7 +60,7 @@ def collect(variant, params, game, env_params, games: int, max_steps: int):
     import jax
     import jax.numpy as jnp
 
-    from followed_play import follow_step, start
+    from experiments.control_probes.followed_play import follow_step, start
 
     body = follow_step(variant, params, game, env_params, EXPLORE)
 

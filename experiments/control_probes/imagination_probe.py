@@ -27,7 +27,7 @@ Reported for the returns summed over the first k imagined steps (k in `--ks`):
 - `accelerate_gap`: the mean real and imagined return of straight-on accelerating minus
   straight on (the cost of accelerating, which imagination is known to see).
 
-    .venv/bin/python benchmarks/imagination_probe.py RUN_DIR [RUN_DIR ...] [--out FILE]
+    .venv/bin/python experiments/control_probes/imagination_probe.py RUN_DIR [RUN_DIR ...] [--out FILE]
 
 RUN_DIR: a controller variant's run on the built-in game (offline, `--controller none`, or
 online). Ends with one JSON line, a result per run.
@@ -40,7 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 EXPLORE = 0.2  # the share of the privileged policy's steps replaced by random turns
 GAME_SEED = 20000
@@ -55,7 +57,7 @@ def branch_returns(variant, params, game, env_params, horizon: int, every: int, 
     import jax
     import jax.numpy as jnp
 
-    from followed_play import follow_step, start
+    from experiments.control_probes.followed_play import follow_step, start
 
     buttons = jnp.asarray(list(SEQUENCES.values()), jnp.float32)
     n = buttons.shape[0]

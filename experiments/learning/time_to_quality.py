@@ -19,13 +19,13 @@ Rows (`--rows`, any subset, run one after another in this process):
                      first by another process): what a second run of the same configuration
                      pays, as `cdrl train` with its cache does
   small-fast-torch   the same recipe, weights and chunks in the eager PyTorch reference
-                     (benchmarks/torch_reference.py), evaluated by cdrl's evaluation
+                     (reference/torch_model.py), evaluated by cdrl's evaluation
   thesis-fast        thesis preset (150 x 150, LSTM 512), the `fast` recipe
 
-    .venv/bin/python benchmarks/time_to_quality.py --rows small-fast small-fast-torch --cap 600
-    .venv/bin/python benchmarks/time_to_quality.py --rows small-fast small-fast-warm small-fast-torch \
+    .venv/bin/python experiments/learning/time_to_quality.py --rows small-fast small-fast-torch --cap 600
+    .venv/bin/python experiments/learning/time_to_quality.py --rows small-fast small-fast-warm small-fast-torch \
         --cap 60                                                # to 1: cold, warm, PyTorch
-    .venv/bin/python benchmarks/time_to_quality.py --quick     # seconds: does it run?
+    .venv/bin/python experiments/learning/time_to_quality.py --quick     # seconds: does it run?
 
 One JSON line at the end; `--out FILE` also writes it to FILE.
 """
@@ -49,7 +49,10 @@ from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sources import load_episodes, with_obs_norm
 from cdrl.training.step import init_state, train_step
-from common import emit, warn_if_busy
+
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit, warn_if_busy  # noqa: E402
 
 ROWS = {
     "small-thesis": dict(preset="small", recipe="thesis", framework="cdrl"),
@@ -116,8 +119,7 @@ class _Torch:
     def __init__(self, cfg: RunConfig, variant, params):
         import torch
 
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        import torch_reference as tr
+        from reference import torch_model as tr
 
         if cfg.optimizer != "sgd" or cfg.grad_clip:
             raise ValueError("the torch reference trains with SGD and no clipping only")

@@ -3,7 +3,7 @@ state (`steering_probe.py`, `imagination_probe.py`) play on.
 
 A share `explore` of the privileged policy's steps are random turns instead
 (`envs.policies.random_turns_instead`), so that the play holds recoveries. The model is
-teacher-forced as a controller run acts (`cdrl.training.dream`) and as recorded data sets hold
+teacher-forced as a controller run acts (`cdrl.learners.replay_base`) and as recorded data sets hold
 their steps: at step t it takes the frame o_t and the buttons executed at o_t, so its state after
 the step has seen a_t and predicts o_{t+1} and r_{t+1}.
 """

@@ -12,7 +12,7 @@ every trained seed scored on its held-out episodes: the one-step excess ratio, a
 its own predictions for `--horizon` steps after `--context` real frames
 (`cdrl.evaluation.multistep`).
 
-    .venv/bin/python benchmarks/thesis_variants.py --work-dir DIR [--steps 1000] [--seeds 0 1 2] \\
+    .venv/bin/python experiments/world_models/thesis_variants.py --work-dir DIR [--steps 1000] [--seeds 0 1 2] \\
         [--variants main baseline_ff residual closed_loop_minus] [--out FILE]
 
 A finished search or run in DIR is read back, an interrupted run resumed. Ends with one
@@ -28,7 +28,9 @@ import sys
 import time
 from pathlib import Path
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 STEPS_REPORTED = (1, 5, 15)
 
@@ -50,7 +52,7 @@ def main(argv=None) -> int:
     parser.add_argument("--horizon", type=int, default=15)
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
-    from cdrl.analysis.control import across
+    from cdrl.evaluation.stats import across
     from cdrl.analysis.report import load_run, restore_model, run_episodes
     from cdrl.data.atomic import atomic_write_text
     from cdrl.evaluation.multistep import multistep_scores

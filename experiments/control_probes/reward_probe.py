@@ -17,7 +17,7 @@ the one at the mouth), scored by the held-out R²;
 and, to say why a reward term shapes so little of the core, the norms of each loss term's
 gradient (unweighted) per kernel at the run's initial parameters, on its first training chunk.
 
-    .venv/bin/python benchmarks/reward_probe.py RUN_DIR [--out FILE]
+    .venv/bin/python experiments/control_probes/reward_probe.py RUN_DIR [--out FILE]
 
 RUN_DIR: a controller variant's run (offline, `--controller none`, or online) whose data set
 is the built-in game's. Ends with one JSON line.
@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 RIDGE = 10.0  # the probes' L2 penalty, on standardised inputs
 AHEAD, AHEAD_GAMMA = 8, 0.9  # the pellets-ahead target: steps and discount

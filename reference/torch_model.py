@@ -2,8 +2,9 @@
 
 It exists to pin cdrl's JAX programs against an independent implementation (same weights
 and data give the same loss, gradients and carries: tests/test_torch_reference.py) and to
-give the training-throughput benchmark a conventional baseline
-(benchmarks/train_throughput.py).
+give the benchmarks a conventional baseline (benchmarks/train_throughput.py and
+experiments/learning/time_to_quality.py). Import it from the repository root as
+`from reference import torch_model`; it needs the `bench` extra (torch).
 
 For any `cdrl.models.arch.ArchConfig`:
 

@@ -8,16 +8,20 @@ blob's peak brightness change (`contrast`, in [0, 1]), its pixels, the blobs per
 share of the frame's pixels the pellets change (`area_share`: what a pellet weighs in a mean
 per-pixel loss).
 
-    .venv/bin/python benchmarks/pellet_contrast.py --out benchmarks/results/pellet_contrast.json
-    .venv/bin/python benchmarks/pellet_contrast.py --levels thesis --sizes 64 --max-filter 5
+    .venv/bin/python experiments/control_probes/pellet_contrast.py --out experiments/control_probes/results/pellet_contrast.json
+    .venv/bin/python experiments/control_probes/pellet_contrast.py --levels thesis --sizes 64 --max-filter 5
 """
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from common import emit
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
 
 
 def measure(level: str, sizes, games: int, max_filter: int = 1) -> dict:

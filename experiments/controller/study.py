@@ -1,5 +1,5 @@
-"""The control experiment: model-based controllers, PPO and the reference policies on the same
-held-out games of the built-in game (`benchmarks/controller.py` and notebook 03 run it).
+"""The controller study: model-based controllers, PPO at the same and at ten times the game
+frames, and the reference policies, on the same held-out games of the built-in game.
 
 Every configuration (`CONFIGS`) is an ordinary run (`cdrl.runs.train.train_run`), trained once
 per seed (a seed sets the initialisation, the exploration and the training games), scored
@@ -26,15 +26,45 @@ greedy buttons. The reference policies play the same games once: they do not lea
                 (`--init-from`); its game frames count the pre-training data's
   critic-pre-bal  `critic` on `real-pre-all-bal`'s world model (the same pre-training): does the
                 actor-critic in imagination control where the one on real returns does?
+  value-pre     `critic-pre` with the one-step value learner (`--controller value`)
   ppo           PPO at the same game frames; ppo-10x at ten times them
 
 Runs live under a work directory, one per configuration and seed (`NAME/seedS`); a finished
 run is read back, an unfinished one resumed, so an experiment continues where it stopped.
+
+Reported per configuration (`configs[name]`): its options, the game frames of a run, per seed
+the final held-out `return` (mean over the games, with their 95 % CI), `length` (survival in
+steps), the learning curve, the seconds it took, and for models with a reward head its fit to
+the reward of its own held-out play (`reward_fit`: correlation and R²), its predicted and real
+reward per step and its next-frame excess ratio over the last quarter of training; across seeds
+the mean, standard deviation and 95 % CI of each (`cdrl.evaluation.stats.across`).
+`references` holds the reference policies' rows (a CI over the games: no seed to vary).
+
+Run from the repository root. It prints a table and ends with one JSON line (`--out FILE` also
+writes it there, after every configuration with `"partial": true` until the last). `--full` is
+the committed budget (small preset, 38 400 game frames per run, 5 seeds, 64 held-out games of
+at most 200 steps; about 5 hours on 2 cores); `--quick` is a smoke test:
+
+    .venv/bin/python experiments/controller/study.py --full --work-dir notebooks/runs/full/03_controller \\
+        --out experiments/controller/results/controller.json --figure experiments/controller/results/controller.png
+
+`--merge A.json B.json ...` runs nothing: it pools result files of the same experiment run in
+several invocations (other seeds, other configurations; `merge` checks that they share the
+budget and the held-out games) and recomputes the across-seed figures:
+
+    .venv/bin/python experiments/controller/study.py --merge seeds01.json seed2.json --out result.json
+
+Notebook 03 runs the same experiment on the same work directory. LOG.md beside this file holds
+the questions asked of it, the commands and the answers.
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
+import os
+import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Sequence
@@ -44,12 +74,16 @@ import numpy as np
 import scipy.stats
 
 from cdrl.evaluation.play import EVAL_SEED, model_fit
+from cdrl.evaluation.stats import across
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.online import restore_learner
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes
 from cdrl.runs.train import train_run
+
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 # name -> options of the run (RunConfig fields) besides the budget's; `frames_factor` scales
 # the budget's game frames; `pretrain` first trains the world model offline for the budget's
@@ -186,17 +220,6 @@ def pretrain_result(run_dir: Path) -> dict:
     final = [r for r in run.evals.read() if r["step"] == cfg.steps][-1]
     return {"pretrain": {"data_frames": int(sum(len(train[i].frames) for i in range(len(train)))),
                          "steps": cfg.steps, "excess_ratio": final["excess_ratio"]}}
-
-
-def across(values: Sequence[float]) -> dict:
-    """Mean, standard deviation (ddof 1) and 95 % CI (Student t, n - 1 dof) over seeds."""
-    n = len(values)
-    mean = float(np.mean(values))
-    if n < 2:
-        return {"mean": mean, "std": None, "ci95": None, "per_seed": list(values)}
-    std = float(np.std(values, ddof=1))
-    half = float(scipy.stats.t.ppf(0.975, n - 1) * std / np.sqrt(n))
-    return {"mean": mean, "std": std, "ci95": [mean - half, mean + half], "per_seed": list(values)}
 
 
 def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], work: Path,
@@ -343,3 +366,78 @@ def curves_figure(results: dict):
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     return fig
+
+
+def main(argv=None) -> int:
+    from benchmarks.common import emit, warn_if_busy
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--full", action="store_true", help="the committed budget (default: a short check)")
+    size.add_argument("--quick", action="store_true", help="a smoke test on the tiny preset")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds (default: 0-4)")
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
+                        help="configurations to run, in this order (default: all)")
+    parser.add_argument("--level", default="thesis", help="the game's level (envs.slither.LEVELS; default: thesis)")
+    parser.add_argument("--preset", default=None,
+                        help="the architecture preset (cdrl.models.PRESETS; default: the budget's, small for --full)")
+    parser.add_argument("--work-dir", default=None, help="where the runs go (default: a temporary directory)")
+    parser.add_argument("--out", default=None, help="also write the JSON result to this file")
+    parser.add_argument("--figure", default=None, help="draw the learning curves into this PNG file")
+    parser.add_argument("--merge", nargs="+", default=None, metavar="FILE",
+                        help="run nothing: pool these result files (JSON) into one, the figures across seeds "
+                             "recomputed")
+    args = parser.parse_args(argv)
+    if args.merge:
+        return merge_files(args.merge, args.out, args.figure)
+    # Every seed of a configuration runs the same programs: compile each once.
+    jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR")
+                      or tempfile.mkdtemp(prefix="cdrl-controller-xla-"))
+    budget = BUDGETS["full" if args.full else "tiny" if args.quick else "default"]
+    budget = dataclasses.replace(budget, level=args.level, preset=args.preset or budget.preset)
+    work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
+    load_start = os.getloadavg()[0]
+
+    def partial(results: dict) -> None:
+        print(format_results(results), file=sys.stderr, flush=True)
+        if args.out:
+            emit({**results, "partial": True}, args.out)
+
+    results = run_experiment(args.configs, budget, args.seeds, work, on_config=partial)
+    results["budget"]["name"] = "full" if args.full else "quick" if args.quick else "default"
+    warn_if_busy(results, load_start, os.getloadavg()[0])
+    if args.figure:
+        from cdrl.analysis.plots import save_figure
+
+        save_figure(curves_figure(results), Path(args.figure))
+    emit(results, args.out)
+    return 0
+
+
+def merge_files(paths, out, figure) -> int:
+    """`--merge`: the result files in `paths` pooled (`merge`), printed, written to `out` and
+    drawn into `figure` where given."""
+    from benchmarks.common import emit
+
+    parts = []
+    for path in paths:
+        try:
+            parts.append(json.loads(Path(path).read_text()))
+        except (OSError, json.JSONDecodeError) as e:
+            raise SystemExit(f"--merge: cannot read the result file {path}: {e}") from None
+    try:
+        results = merge(parts)
+    except ValueError as e:
+        raise SystemExit(f"--merge: {e}") from None
+    results["merged_from"] = [str(p) for p in paths]
+    print(format_results(results), file=sys.stderr, flush=True)
+    if figure:
+        from cdrl.analysis.plots import save_figure
+
+        save_figure(curves_figure(results), Path(figure))
+    emit(results, out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""How fast and why `main` learns to predict the next frame (LOG.md)."""
