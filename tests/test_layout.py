@@ -98,11 +98,11 @@ def cdrl_imports_any(path: Path) -> set[str]:
 
 REPO = ROOT.parent
 # benchmarks/ measures speed and scaling only; the research studies live in experiments/.
-BENCHMARK_SCRIPTS = {"allocator.py", "common.py", "env_throughput.py", "layer_timings.py", "online_throughput.py",
+BENCHMARK_SCRIPTS = {"common.py", "env_throughput.py", "layer_timings.py", "malloc_throughput.py", "online_throughput.py",
                      "op_profile.py", "scaling.py", "sweep_throughput.py", "train_throughput.py"}
 # Basenames that two modules still share, each to be renamed by issue 45's item 4. Remove a name
 # once it is unique; add none.
-SHARED_BASENAMES_TO_RENAME = {"allocator.py", "frames.py", "online.py", "writer.py"}
+SHARED_BASENAMES_TO_RENAME = {"frames.py", "online.py", "writer.py"}
 
 
 def repo_modules() -> list[Path]:

@@ -6,7 +6,7 @@ maps a block that large afresh each time and unmaps it when it is freed, so ever
 each page of it in again: some 37 000 page faults a thesis-sized step at one stream, a quarter
 of the step's CPU time spent in the kernel. gperftools' tcmalloc keeps freed memory for reuse,
 and the same step runs 1.38x faster under it at one stream, 1.45x at eight
-(`benchmarks/allocator.py`, docs/performance.md). glibc's own settings do not do it: the
+(`benchmarks/malloc_throughput.py`, docs/performance.md). glibc's own settings do not do it: the
 arenas of XLA's worker threads map every block over 64 MB whatever they are told, and a single
 shared arena (`MALLOC_ARENA_MAX=1`) removes the faults but makes the online programs' threads
 queue for it (half their speed).

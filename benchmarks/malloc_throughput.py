@@ -16,7 +16,7 @@ Reported per configuration: frames/s of each side (median [min, max] over `--rep
 speed-up as the median [min, max] of the per-window ratios (preloaded / system), and per step
 the minor page faults and the share of the process's CPU time spent in the kernel (`getrusage`).
 
-    .venv/bin/python benchmarks/allocator.py --out benchmarks/results/allocator.json
+    .venv/bin/python benchmarks/malloc_throughput.py --out benchmarks/results/allocator.json
 
 One JSON line at the end (`--out FILE` also writes it there).
 """
