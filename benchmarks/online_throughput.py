@@ -75,6 +75,10 @@ class _Program:
         jax.config.update("jax_enable_compilation_cache", False)  # compile times are real compiles
         from cdrl.runs.config import RunConfig
         try:
+            from cdrl.runs.online import build_learner
+        except ImportError:  # a checkout from before the learner interface
+            build_learner = None
+        try:
             from cdrl.runs.online import learner as build
         except ImportError:  # a checkout from before the learners' builder
             build = None
@@ -82,7 +86,10 @@ class _Program:
         options = dict(LEARNERS[learner], preset=preset, seed=0)
         if learner != "ppo":
             options["batch"] = games
-        if build is not None:
+        if build_learner is not None:
+            cfg = RunConfig(**options)
+            self.program = _interface_program(build_learner(cfg))
+        elif build is not None:
             cfg = RunConfig(**options)
             self.program = build(cfg)
         elif options.pop("controller", None) == "rollout":
@@ -111,6 +118,18 @@ class _Program:
             self._step()
             n += 1
         return n * self.frames_per_step / (time.perf_counter() - t0)
+
+
+def _interface_program(learner):
+    """(fresh, program) of a learner behind `cdrl.learners.api.Learner`."""
+    import types
+
+    import jax
+
+    from cdrl.learners.api import train_program
+
+    return types.SimpleNamespace(fresh=lambda seed: learner.init(jax.random.PRNGKey(seed)),
+                                 program=lambda state: train_program(learner, state))
 
 
 def _rollout_before_builder(options: dict):

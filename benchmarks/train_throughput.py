@@ -51,7 +51,7 @@ its loss back to the host (as a training loop that logs does). Reported per conf
     torch; MFU uses the larger of the two.
 
 Online training of `final_proposal` (cdrl only: there is NO torch reference for it). One
-`cdrl.training.online.online_step` is a jitted program that acts in B (= each `--batches` entry)
+`cdrl.learners.thesis_ascent.ThesisAscent.train_step`, jitted, is a program that acts in B (= each `--batches` entry)
 built-in games (simulated and rendered at 150x150, resized to the preset's image size) for T
 steps and learns from them, so its frames/s (frames = num_envs * unroll per update) include
 the games and are not comparable with the offline figures (no ratio, so only the spread of its
@@ -399,23 +399,21 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
 def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
     import jax
 
+    from cdrl.learners.api import train_program
     from cdrl.runs.config import RunConfig
-    from cdrl.runs.online import learner
-    from cdrl.training.online import init_online, online_step
+    from cdrl.runs.online import build_learner
 
     # The ascent on from the first update: the steady state (before it is on, a step takes one backward pass less).
     cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed, warmup_steps=0)
-    program = learner(cfg)
-    variant, game, env_params, ocfg, hp = program.model, program.game, program.env_params, program.config, program.hp
-    key = jax.random.PRNGKey(cfg.seed)
-    # Set-up (not measured): init_online compiled with LLVM optimisation off, see _FAST_COMPILE.
-    init = jax.jit(init_online, static_argnums=(0, 1, 3))
-    state = init.lower(variant, game, env_params, ocfg, key, hp).compile(compiler_options=_FAST_COMPILE)(
-        env_params, key, hp)
+    learner = build_learner(cfg)
+    state = learner.init(jax.random.PRNGKey(cfg.seed))  # set-up, not measured
+
+    def online_step(state):
+        return train_program(learner, state)
 
     with PeakRSS() as compile_mem:
         t0 = time.perf_counter()
-        state, metrics = online_step(variant, game, ocfg, state, hp, env_params)
+        state, metrics = online_step(state)
         float(metrics["loss"])
         compile_s = time.perf_counter() - t0
     times, mem = [], []
@@ -424,7 +422,7 @@ def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
         with PeakRSS() as m:
             t0 = time.perf_counter()
             for _ in range(n):
-                state, metrics = online_step(variant, game, ocfg, state, hp, env_params)
+                state, metrics = online_step(state)
                 float(metrics["loss"])
             times.append((time.perf_counter() - t0) / n)
         mem.append(m)

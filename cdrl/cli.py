@@ -1,4 +1,4 @@
-"""The `cdrl` command line: collect, train, sweep, lr-search, eval, plot, variants.
+"""The `cdrl` command line: collect, train, sweep, lr-search, eval, plot, variants, learners.
 
 Every `train` option is a field of `cdrl.runs.config.RunConfig`; its help text and default come
 from there, so the CLI and the Python API cannot drift apart.
@@ -16,6 +16,8 @@ from cdrl.data.gymrec import OBS_MODES
 from cdrl.runs.config import RECIPES, RunConfig
 from cdrl.runs.sweep import GRID_FIELDS
 
+# Option -> its old spellings, still accepted for one release.
+OLD_OPTION_NAMES = {"learner": ("--controller",)}
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
 _TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations (bool: --x/--no-x)
@@ -49,7 +51,7 @@ def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...
                                 default=argparse.SUPPRESS, help=f"{f.metadata['help']} (default: {default})")
             continue
         parser.add_argument(
-            "--" + f.name.replace("_", "-"),
+            "--" + f.name.replace("_", "-"), *OLD_OPTION_NAMES.get(f.name, ()),
             type=_TYPES[f.type],
             nargs="+" if grid else None,
             default=argparse.SUPPRESS,
@@ -242,6 +244,20 @@ def _cmd_variants(args) -> int:
     return 0
 
 
+def _cmd_learners(args) -> int:
+    from cdrl import learners
+
+    old = {}
+    for alias, name in learners.ALIASES.items():
+        old.setdefault(name, []).append(alias)
+    print(f"{learners.OFFLINE:20s} the world model alone, offline on recorded episodes (old name: none)")
+    for name, cls in learners.LEARNERS.items():
+        doc = " ".join((sys.modules[cls.__module__].__doc__ or "").split("\n\n")[0].split())
+        aliases = f" (old name: {', '.join(old[name])})" if name in old else ""
+        print(f"{name:20s} {doc.split(': ', 1)[-1]}{aliases}")
+    return 0
+
+
 def compile_cache_dir() -> Path:
     """Where compiled programs are kept: $CDRL_COMPILE_CACHE, else JAX's own
     $JAX_COMPILATION_CACHE_DIR, else $XDG_CACHE_HOME/cdrl/xla (~/.cache/cdrl/xla)."""
@@ -374,6 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     var = command("variants", help="list the model variants")
     var.set_defaults(func=_cmd_variants)
+    lrn = command("learners", help="list the learners a run can name with --learner")
+    lrn.set_defaults(func=_cmd_learners)
     return parser
 
 

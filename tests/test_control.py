@@ -1,5 +1,5 @@
 """Control: the reference policies and the protocol every controller is measured with, and the
-learner whose controller trains in imagination (`cdrl.training.dream`): its pieces against
+learners with a replay buffer (`cdrl.learners`): its pieces against
 equations and independent paths, and a reward any controller can learn; the experiment's
 results pooled across invocations."""
 import dataclasses
@@ -17,7 +17,12 @@ import games
 from cdrl.evaluation import play
 from cdrl.models import make_variant
 from cdrl.models.arch import TINY
-from cdrl.training import dream
+from cdrl.learners import LEARNERS, canonical, one_step_q, onpolicy_ac
+from cdrl.learners import replay_base as rb
+from cdrl.learners.api import train_program
+from cdrl.learners.imagination import ImaginationConfig
+from cdrl.learners.onpolicy_ac import OnPolicyConfig
+from cdrl.models import nets
 from cdrl.training.optim import HParams, OptHParams
 from envs.policies import get_policy, privileged_policy
 from experiments.controller import study
@@ -102,14 +107,14 @@ def test_lambda_returns_against_the_recursion_with_episode_ends():
     ended[3, 0] = 0.0
     for d in (None, ended):
         for lam in (0.0, 0.6, 1.0):
-            out = np.asarray(dream.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, lam,
+            out = np.asarray(rb.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, lam,
                                                   None if d is None else jnp.asarray(d)))
             ref, nxt = np.zeros_like(r), last
             for k in reversed(range(7)):
                 nxt = r[k] + 0.9 * (1.0 if d is None else d[k]) * ((1 - lam) * v[k] + lam * nxt)
                 ref[k] = nxt
             np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
-    mc = np.asarray(dream.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, 1.0, jnp.asarray(ended)))
+    mc = np.asarray(rb.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, 1.0, jnp.asarray(ended)))
     assert mc[0, 0] == pytest.approx(sum(0.9 ** k * r[k, 0] for k in range(4)), rel=1e-5)
 
 
@@ -123,7 +128,7 @@ def test_real_returns_score_each_decision_by_the_rewards_after_its_buttons():
     first = np.zeros((t, b), bool)
     first[3, 0] = True  # game 0 starts again at o_3
     after = np.array([False, True])  # game 1 starts again at o_6, after the chunk
-    rets, valid = dream.real_advantages(jnp.asarray(values), jnp.asarray(reward), jnp.asarray(first),
+    rets, valid = onpolicy_ac.onpolicy_returns(jnp.asarray(values), jnp.asarray(reward), jnp.asarray(first),
                                         jnp.asarray(after), gamma, lam)
     starts = np.concatenate([first, after[None]])
     ref = np.zeros((t - 1, b), np.float32)
@@ -146,14 +151,14 @@ def test_the_value_controller_ascends_the_exact_expected_value_of_its_buttons():
     the critic on the model's state one imagined step after pressing it (`imagine_step` by
     hand); its gradient reaches the controller's probabilities, not the Q values."""
     probs = jnp.asarray([[0.9, 0.2, 0.5], [0.1, 0.7, 0.05]])
-    logp = dream.button_log_probs(probs)
+    logp = one_step_q.button_log_probs(probs)
     np.testing.assert_allclose(np.exp(logp).sum(axis=0), 1.0, rtol=1e-5)
-    combo = list(map(tuple, np.asarray(dream.BUTTON_COMBOS))).index((1.0, 0.0, 1.0))
+    combo = list(map(tuple, np.asarray(rb.BUTTON_COMBOS))).index((1.0, 0.0, 1.0))
     np.testing.assert_allclose(np.exp(logp[combo]), [0.9 * 0.8 * 0.5, 0.1 * 0.3 * 0.05], rtol=1e-5)
 
     v = make_variant("final_proposal", TINY)
     params = v.init(jax.random.PRNGKey(0))
-    critic = dream.nets.init_mlp(jax.random.PRNGKey(1), (TINY.lstm_size, 8, 1), final_selu=False)
+    critic = nets.init_mlp(jax.random.PRNGKey(1), (TINY.lstm_size, 8, 1), final_selu=False)
     t, b = 4, 2
     rng = np.random.default_rng(2)
     from cdrl.data.stream import Chunk
@@ -161,19 +166,19 @@ def test_the_value_controller_ascends_the_exact_expected_value_of_its_buttons():
                   next_obs=jnp.asarray(rng.uniform(size=(t, b, 16, 16)), jnp.float32),
                   action=jnp.asarray(rng.integers(0, 2, size=(t, b, 3)), jnp.float32),
                   reward=jnp.asarray(rng.normal(size=(t, b)), jnp.float32), is_first=jnp.zeros((t, b), bool))
-    carry, _, frame = dream._starts(v, params, chunk, v.init_carry(b))
-    hp = dream.DreamHParams.create(HParams.create(v), entropy=0.0)
+    carry, _, frame = rb.starts(v, params, chunk, v.init_carry(b))
+    hp = rb.ReplayHParams.create(HParams.create(v), entropy=0.0)
     n = t * b
     probs = jnp.asarray(rng.uniform(0.05, 0.95, size=(n, 3)), jnp.float32)
-    actor, (_, terms) = dream._value_objective(v, hp, params, critic, chunk, (carry, probs, frame))
+    actor, (_, terms) = one_step_q.value_objective(v, hp, params, critic, chunk, (carry, probs, frame))
     expected = np.zeros(n)
-    for a in np.asarray(dream.BUTTON_COMBOS):
+    for a in np.asarray(rb.BUTTON_COMBOS):
         after, _ = v.imagine_step(params, carry, None, jnp.broadcast_to(jnp.asarray(a), (n, 3)))
-        q = np.asarray(dream.critic_value(critic, after["lstm"].h))
+        q = np.asarray(rb.critic_value(critic, after["lstm"].h))
         p = np.prod(np.where(a > 0, np.asarray(probs), 1 - np.asarray(probs)), axis=-1)
         expected += p * q
     assert float(terms["imagined_return"]) == pytest.approx(expected.mean(), rel=1e-4, abs=1e-6)
-    grad = jax.grad(lambda pr: dream._value_objective(v, hp, params, critic, chunk, (carry, pr, frame))[0])(probs)
+    grad = jax.grad(lambda pr: one_step_q.value_objective(v, hp, params, critic, chunk, (carry, pr, frame))[0])(probs)
     assert np.abs(np.asarray(grad)).max() > 0
 
 
@@ -200,15 +205,15 @@ def test_closed_loop_minus_imagines_on_a_zero_error():
 def test_the_replay_buffer_is_a_ring():
     v = make_variant("final_proposal", TINY)
     g, params = games.test_game()
-    cfg = dream.DreamConfig(num_envs=2, unroll=3, replay=2, model_updates=1, horizon=2)
-    hp = dream.DreamHParams.create(HParams.create(v))
-    replay = dream.init_dream(v, g, params, cfg, jax.random.PRNGKey(0), hp).replay
+    cfg = ImaginationConfig(num_envs=2, unroll=3, replay=2, model_updates=1, horizon=2)
+    hp = rb.ReplayHParams.create(HParams.create(v))
+    replay = LEARNERS["imagined_ascent"](v, g, cfg, hp, params).init(jax.random.PRNGKey(0)).replay
     carry = v.init_carry(2)
     for i in range(3):
         chunk = {"obs": jnp.full((3, 2, 16, 16), i / 10), "next_obs": jnp.full((3, 2, 16, 16), i / 10 + 0.05),
                  "action": jnp.full((3, 2, 3), float(i)), "reward": jnp.full((3, 2), float(i)),
                  "is_first": jnp.zeros((3, 2), bool)}
-        replay = dream._store(replay, chunk, carry)
+        replay = rb.store(replay, chunk, carry)
     assert int(replay.filled) == 2 and int(replay.cursor) == 1
     np.testing.assert_array_equal(replay.reward[:, 0, 0], [2.0, 1.0])  # chunk 2 overwrote chunk 0
     # frames stored as uint8: o_0 .. o_{T-1} then the last o_T
@@ -253,46 +258,50 @@ def test_the_balanced_reward_weight_reaches_the_loss_or_is_refused_by_name():
             RunConfig(reward_balanced_weight=0.1, **bad)
 
 
-def _left_bonus_learner(controller: str):
+def _left_bonus_learner(name: str):
+    """A learner with a replay buffer on the left-bonus game, and its first state."""
     g, params = games.left_bonus_game()
     v = make_variant("final_proposal", TINY)
-    cfg = dream.DreamConfig(num_envs=8, unroll=8, replay=16, model_updates=2, horizon=5, controller=controller)
-    hp = dream.DreamHParams.create(HParams.create(v, opt=OptHParams.create(lr=0.1, momentum=0.9)), warmup_steps=5,
-                                   ctrl_opt=OptHParams.create("adam", lr=1e-3))
-    return g, params, v, cfg, hp, dream.init_dream(v, g, params, cfg, jax.random.PRNGKey(0), hp)
+    cls = LEARNERS[canonical(name)]
+    shape = dict(num_envs=8, unroll=8, replay=16, model_updates=2)
+    configs = {"one_step_q": rb.ReplayConfig(**shape), "onpolicy_ac": OnPolicyConfig(**shape)}
+    cfg = configs.get(cls.name, ImaginationConfig(**shape, horizon=5))
+    hp = rb.ReplayHParams.create(HParams.create(v, opt=OptHParams.create(lr=0.1, momentum=0.9)), warmup_steps=5,
+                                 ctrl_opt=OptHParams.create("adam", lr=1e-3))
+    learner = cls(v, g, cfg, hp, params)
+    return learner, learner.init(jax.random.PRNGKey(0))
 
 
 def test_controller_updates_move_the_controller_only():
     """The controller's objective changes the controller (the FC's action-code columns and
     D_a) and nothing else; the model's updates leave the controller as it was."""
-    g, params, v, cfg, hp, state = _left_bonus_learner("critic")
-    mask = v.controller_mask(state.model.params)
+    learner, state = _left_bonus_learner("imagination_ac")
+    mask = learner.model.controller_mask(state.model.params)
     key = jax.random.PRNGKey(3)
-    chunk, _ = _filled(state).chunk(0)
-    ctrl_only, _ = jax.jit(dream._controller_update, static_argnums=(0, 1))(v, cfg, state, hp, _starts(v, state), key,
-                                                                            1.0, chunk)
+    chunk, carry = _filled(state).chunk(0)
+    ctrl_only, _ = jax.jit(lambda l, s, c, cr, k: l.replayed_update(s, c, cr, k, 1.0))(learner, state, chunk, carry,
+                                                                                        key)
     moved = jax.tree.map(lambda a, b: np.asarray(a != b), ctrl_only.model.params, state.model.params)
     assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
     assert not any(np.any(m & (k == 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
-    chunk, carry = _filled(state).chunk(0)
-    model_only, _ = jax.jit(dream._model_update, static_argnums=0)(v, state, hp, chunk, carry)
+    model_only, _ = jax.jit(lambda l, s, c, cr: l.model_update(s, c, cr))(learner, state, chunk, carry)
     for new, old, k in zip(jax.tree.leaves(model_only.model.params), jax.tree.leaves(state.model.params),
                            jax.tree.leaves(mask)):
         np.testing.assert_array_equal(np.asarray(new)[np.asarray(k) > 0], np.asarray(old)[np.asarray(k) > 0])
 
 
 @pytest.mark.parametrize("scope", ["controller", "all"])
-def test_the_real_controller_moves_its_scope_only_and_starts_on_policy(scope):
-    """`real` updates the controller and the critic from the chunk just played; with scope
+def test_the_onpolicy_controller_moves_its_scope_only_and_starts_on_policy(scope):
+    """`onpolicy_ac` updates the controller and the critic from the chunk just played; with scope
     `controller` the world model is untouched, with `all` its core and encoder move too. At its
     first pass the probability ratio of every decision is 1: the states it recomputes from the
     chunk's start (scope `all`) are those the buttons were drawn in while acting."""
-    g, params, v, cfg, hp, state = _left_bonus_learner("real")
+    learner, state = _left_bonus_learner("onpolicy_ac")
     carry0 = state.model.carry
-    acted, chunk, _ = jax.jit(dream._act, static_argnums=(0, 1, 2))(v, g, cfg, state, params, 0.3)
-    mask = v.controller_mask(acted.model.params)
-    one = dataclasses.replace(cfg, epochs=1, scope=scope)
-    new, terms = jax.jit(dream._real_update, static_argnums=(0, 1))(v, one, acted, hp, chunk, carry0, 0.3, 1.0)
+    acted, chunk, _ = jax.jit(lambda l, s: l.collect(s, 0.3))(learner, state)
+    mask = learner.model.controller_mask(acted.model.params)
+    one = learner.replace(config=dataclasses.replace(learner.config, epochs=1, scope=scope))
+    new, terms = jax.jit(lambda l, s, c, c0: l.played_update(s, c, c0, 0.3, 1.0))(one, acted, chunk, carry0)
     assert float(terms["clip_fraction"]) == 0.0 and np.isfinite(float(terms["critic_loss"]))
     moved = jax.tree.map(lambda a, b: np.asarray(a != b), new.model.params, acted.model.params)
     assert any(np.any(m & (k > 0)) for m, k in zip(jax.tree.leaves(moved), jax.tree.leaves(mask)))
@@ -309,22 +318,17 @@ def _filled(state):
                      filled=jnp.ones((), jnp.int32))
 
 
-def _starts(v, state):
-    chunk, carry = _filled(state).chunk(0)
-    return jax.jit(dream._starts, static_argnums=0)(v, state.model.params, chunk, carry)
-
-
-@pytest.mark.parametrize("controller", ["critic", "value", "real"])
-def test_the_controller_learns_a_trivially_learnable_reward(controller):
-    """With a bonus for turning left, the actor-critic in imagination (`critic`), the action
-    values read one model step ahead (`value`) and the actor-critic on the real chunks (`real`)
-    teach the controller to turn left: its noise-free
-    return on held-out seeds clearly beats the uniform-random policy's."""
-    g, params, v, cfg, hp, state = _left_bonus_learner(controller)
+@pytest.mark.parametrize("name", ["imagination_ac", "one_step_q", "onpolicy_ac"])
+def test_the_controller_learns_a_trivially_learnable_reward(name):
+    """With a bonus for turning left, the actor-critic in imagination, the action values read
+    one model step ahead and the actor-critic on the real chunks teach the controller to turn
+    left: its noise-free return on held-out seeds clearly beats the uniform-random policy's."""
+    learner, state = _left_bonus_learner(name)
     for _ in range(60):
-        state, metrics = dream.dream_step(v, g, cfg, state, hp, params)
+        state, metrics = train_program(learner, state)
     assert float(metrics["controller_on"]) == 1.0 and not bool(metrics["diverged"])
-    init, step, p = play.controller_policy(v, state.model.params)
+    g, params = learner.game, learner.env_params
+    init, step, p = learner.policy(state)
     learned = play.summarize(*play.play(g, params, init, step, SEEDS, games.MAX_STEPS, params=p))
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
@@ -380,7 +384,7 @@ def test_the_imagination_comparison_shares_its_world_models_pre_training(imagine
     for seed in (0, 3):
         assert study.pretrain_config(imagined, budget, seed) == study.pretrain_config(real, budget, seed)
         a, b = study.config_of(imagined, budget, seed), study.config_of(real, budget, seed)
-        assert (a.variant, a.controller, b.controller) == (b.variant, "critic", "real")
+        assert (a.variant, a.learner, b.learner) == (b.variant, "imagination_ac", "onpolicy_ac")
 
 
 def _seed_result(ret, references, length=180.0):

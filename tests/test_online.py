@@ -5,10 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cdrl.data.frames import model_obs
+from cdrl.learners import game_batch as vec
+from cdrl.learners.api import train_program
+from cdrl.learners.thesis_ascent import AscentConfig, AscentHParams, Rollout, ThesisAscent, chunk_objective
 from cdrl.models import make_variant
 from cdrl.models.arch import TINY
-from cdrl.training import online
-from cdrl.training.online import OnlineConfig, OnlineHParams
 import games
 
 ARCH = TINY
@@ -19,7 +21,18 @@ def game():
     return games.test_game()
 
 
-STEP = online.online_step
+def STEP(v, g, cfg, state, hp, env_params):
+    return train_program(ThesisAscent(v, g, cfg, hp, env_params), state)
+
+
+def rollout_carry(state):
+    return Rollout(carry=jax.lax.stop_gradient(state.train.carry), games=state.games, action=state.action,
+                   key=state.key)
+
+
+def transition(v, g, p, env_params, noise_std, c, hp=None):
+    learner = ThesisAscent(v, g, AscentConfig(num_envs=ENVS, unroll=T), hp or AscentHParams.create(), env_params)
+    return learner.transition(p, jnp.zeros((), jnp.int32), noise_std, c)
 # Every test shares one game, variant and shape, so the online step compiles once.
 ENVS, T = 8, 8
 
@@ -27,9 +40,9 @@ ENVS, T = 8, 8
 def _state(game, hp=None):
     g, params = game
     v = make_variant("reward_prediction", ARCH)
-    cfg = OnlineConfig(num_envs=ENVS, unroll=T)
-    hp = hp or OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
-    return v, cfg, hp, online.init_online(v, g, params, cfg, jax.random.PRNGKey(0), hp)
+    cfg = AscentConfig(num_envs=ENVS, unroll=T)
+    hp = hp or AscentHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
+    return v, cfg, hp, ThesisAscent(v, g, cfg, hp, params).init(jax.random.PRNGKey(0))
 
 
 def test_game_outputs_carry_no_gradient(game):
@@ -44,10 +57,10 @@ def test_game_outputs_carry_no_gradient(game):
     @jax.jit
     def gradients(p):
         def two_steps(p):
-            c = online.rollout_carry(state)
-            c, _ = online.transition(v, g, p, env_params, hp.noise_std, c)
+            c = rollout_carry(state)
+            c, _ = transition(v, g, p, env_params, hp.noise_std, c)
             fed_back = c.action  # ã_1, executed (with noise) by the next transition
-            c, (_, stats) = online.transition(v, g, p, env_params, hp.noise_std, c)
+            c, (_, stats) = transition(v, g, p, env_params, hp.noise_std, c)
             return fed_back, stats, c
 
         def model_action(p):
@@ -70,14 +83,14 @@ def test_reward_ascent_reaches_the_controller_only_with_scope_controller(game):
     moves the rest of the model too."""
     g, env_params = game
     v, cfg, _, state = _state(game)
-    hp_on = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
+    hp_on = AscentHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2)
     on, _ = STEP(v, g, cfg, state, hp_on, env_params)
     off, _ = STEP(v, g, cfg, state, hp_on.replace(ascent=jnp.zeros(())), env_params)
     for group in state.train.params:
         same = all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(on.train.params[group]),
                                                          jax.tree.leaves(off.train.params[group])))
         assert same == (group != "act_dec"), group
-    hp_all = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope="all")
+    hp_all = AscentHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope="all")
     on, _ = STEP(v, g, cfg, state, hp_all, env_params)
     off, _ = STEP(v, g, cfg, state, hp_all.replace(ascent=jnp.zeros(())), env_params)
     assert not np.array_equal(on.train.params["reward_head"]["dense1"]["kernel"],
@@ -87,7 +100,7 @@ def test_reward_ascent_reaches_the_controller_only_with_scope_controller(game):
 def test_warmup_keeps_the_ascent_off(game):
     g, env_params = game
     v, cfg, _, state = _state(game)
-    hp = OnlineHParams.create(warmup_steps=5, ascent=0.5)
+    hp = AscentHParams.create(warmup_steps=5, ascent=0.5)
     a, m = STEP(v, g, cfg, state, hp, env_params)
     b, _ = STEP(v, g, cfg, state, hp.replace(ascent=jnp.zeros(())), env_params)
     assert float(m["ascent_on"]) == 0.0
@@ -100,15 +113,15 @@ def test_online_scan_equals_a_python_loop(game):
     v, cfg, hp, state = _state(game)
     hp = hp.replace(warmup_steps=jnp.asarray(1e9, jnp.float32))  # the loss is then the model loss
     new_state, metrics = STEP(v, g, cfg, state, hp, env_params)
-    step = jax.jit(lambda p, c: online.transition(v, g, p, env_params, hp.noise_std, c))
-    c = online.rollout_carry(state)
+    step = jax.jit(lambda p, c: transition(v, g, p, env_params, hp.noise_std, c))
+    c = rollout_carry(state)
     outs, stats_loop = [], []
     for _ in range(cfg.unroll):
         c, (o, s) = step(state.train.params, c)
         outs.append(o)
         stats_loop.append(s)
     stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
-    loss_loop, pred_loop, _ = online.chunk_objective(v, stack(outs), stack(stats_loop), hp)
+    loss_loop, pred_loop, _ = chunk_objective(v, stack(outs), stack(stats_loop), hp)
     np.testing.assert_allclose(metrics["loss"], loss_loop, rtol=1e-5)
     np.testing.assert_allclose(metrics["terms"]["pred_reward"], pred_loop, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(new_state.games.obs, c.games.obs, rtol=1e-5, atol=1e-6)
@@ -131,10 +144,10 @@ def test_offline_variants_are_refused_online(game):
     g, env_params = game
     v = make_variant("main", ARCH)
     with pytest.raises(ValueError, match="has no controller"):
-        online.init_online(v, g, env_params, OnlineConfig(num_envs=1, unroll=2), jax.random.PRNGKey(0),
-                           OnlineHParams.create())
+        ThesisAscent(v, g, AscentConfig(num_envs=1, unroll=2), AscentHParams.create(), env_params).init(
+            jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="unknown ascent scope 'model'"):
-        OnlineHParams.create(scope="model")
+        AscentHParams.create(scope="model")
 
 
 def test_controller_learns_a_trivially_learnable_reward(game):
@@ -146,11 +159,11 @@ def test_controller_learns_a_trivially_learnable_reward(game):
     _, env_params = game
     g, _ = games.left_bonus_game()
     v = make_variant("reward_prediction", ARCH)
-    cfg = OnlineConfig(num_envs=ENVS, unroll=T)
-    hp = OnlineHParams.create(lr=0.1, ascent=1.0, reward_weight=0.1, warmup_steps=20, noise_std=0.3, noise_decay=0.98)
-    state = online.init_online(v, g, env_params, cfg, jax.random.PRNGKey(0), hp)
+    cfg = AscentConfig(num_envs=ENVS, unroll=T)
+    hp = AscentHParams.create(lr=0.1, ascent=1.0, reward_weight=0.1, warmup_steps=20, noise_std=0.3, noise_decay=0.98)
+    state = ThesisAscent(v, g, cfg, hp, env_params).init(jax.random.PRNGKey(0))
     for _ in range(80):
-        state, metrics = online.online_step(v, g, cfg, state, hp, env_params)
+        state, metrics = STEP(v, g, cfg, state, hp, env_params)
     assert float(metrics["ascent_on"]) == 1.0
     seeds = np.arange(1000, 1016)
     init, step, p = play.controller_policy(v, state.train.params)
@@ -176,15 +189,15 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
     against the game's functions called directly, on a step where one game of three ends and
     on one where none does (the new games are then drawn not at all)."""
     g, params = game
-    games3 = online.reset_games(g, params, jax.random.PRNGKey(1), 3, ARCH)
+    games3 = vec.reset_games(g, params, jax.random.PRNGKey(1), 3, ARCH)
     # game 0 one step from its step limit: it ends on this step, games 1 and 2 go on
     games3 = games3.replace(env_state=games3.env_state.replace(
         time=games3.env_state.time.at[0].set(params.max_steps - 1)))
     action = jnp.asarray([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
-    step = jax.jit(lambda gs, k: online.step_games(g, params, gs, action, k, ARCH))
+    step = jax.jit(lambda gs, k: vec.step_games(g, params, gs, action, k, ARCH))
     game_step = jax.jit(lambda k, states: jax.vmap(g.step, in_axes=(0, 0, 0, None))(
         jax.random.split(k, 3), states, action, params))
-    new_games = jax.jit(lambda k: online.reset_games(g, params, k, 3, ARCH))
+    new_games = jax.jit(lambda k: vec.reset_games(g, params, k, 3, ARCH))
     key, ends = jax.random.PRNGKey(2), [True, False, False]
     after, nxt, reward, stats = step(games3, key)
     k_env, k_reset = jax.random.split(key)
@@ -192,11 +205,11 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
     fresh = new_games(k_reset)
     _same(np.asarray(term | trunc), ends)
     _same(np.asarray(after.is_first), ends)
-    _same(np.asarray(nxt), np.asarray(online.model_obs(obs, ARCH)))
+    _same(np.asarray(nxt), np.asarray(model_obs(obs, ARCH)))
     _same(np.asarray(reward), np.asarray(r))
     for i, end in enumerate(ends):
         expected_state = jax.tree.map(lambda x: x[i], fresh.env_state if end else state)
-        expected_obs = (fresh.obs if end else online.model_obs(obs, ARCH))[i]
+        expected_obs = (fresh.obs if end else model_obs(obs, ARCH))[i]
         for a, b in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], after.env_state)),
                         jax.tree.leaves(expected_state), strict=True):
             _same(np.asarray(a), np.asarray(b))
@@ -211,7 +224,7 @@ def test_a_game_that_ends_is_replaced_by_a_new_one_and_the_others_go_on(game):
     assert not bool(jnp.any(term | trunc)) and not bool(jnp.any(after.is_first))
     for a, b in zip(jax.tree.leaves(after.env_state), jax.tree.leaves(state), strict=True):
         _same(np.asarray(a), np.asarray(b))
-    _same(np.asarray(after.obs), np.asarray(online.model_obs(obs, ARCH)))
+    _same(np.asarray(after.obs), np.asarray(model_obs(obs, ARCH)))
     _same(np.asarray(after.episode_length), np.asarray(games3.episode_length) + 1)
 
 
@@ -224,10 +237,10 @@ def test_the_update_is_sgd_on_the_model_gradient_minus_the_scoped_ascent(game):
     params = state.train.params
 
     def term(p, hp, i):
-        return online._rollout(v, g, cfg, p, state, hp, env_params)[0][i]
+        return ThesisAscent(v, g, cfg, hp, env_params).collect(p, state)[0][i]
 
     for scope in ("controller", "all"):
-        hp = OnlineHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope=scope)
+        hp = AscentHParams.create(warmup_steps=0, ascent=0.5, noise_std=0.2, scope=scope)
         new, _ = STEP(v, g, cfg, state, hp, env_params)
         g_model, g_reward = jax.grad(term)(params, hp, 0), jax.grad(term)(params, hp, 1)
         for group in params:

@@ -9,14 +9,30 @@ import pytest
 
 import games
 from cdrl.models.arch import SMALL, THESIS, TINY
-from cdrl.training import ppo
-from cdrl.training.ppo import PPOConfig, PPOHParams
+from cdrl.learners import ppo
+from cdrl.learners.api import train_program
+from cdrl.learners.ppo import PPO, PPOConfig, PPOHParams
 
 ARCH = TINY
 # Every test shares this shape and the one game, so each program compiles once.
 CFG = PPOConfig(num_envs=8, unroll=16, epochs=4, minibatches=4)
 
-_rollout = jax.jit(ppo.rollout, static_argnums=(0, 1, 2))
+def _learner(g, env_params, hp=None, cfg=CFG):
+    return PPO(ARCH, g, cfg, PPOHParams.create() if hp is None else hp, env_params)
+
+
+@jax.jit
+def _collect(learner, state):
+    rolled, (traj, last_value) = learner.collect(state)
+    return rolled, traj, last_value
+
+
+def _rollout(arch, g, cfg, state, env_params):
+    return _collect(PPO(arch, g, cfg, PPOHParams.create(), env_params), state)
+
+
+def _ppo_step(arch, g, cfg, state, hp, env_params):
+    return train_program(PPO(arch, g, cfg, hp, env_params), state)
 
 
 def _copy(tree):
@@ -29,7 +45,7 @@ def start():
     # The left-bonus game throughout: the learning test needs it, and one game means one compilation.
     g, env_params = games.left_bonus_game()
     hp = PPOHParams.create()
-    return g, env_params, hp, ppo.init_ppo(ARCH, g, env_params, CFG, jax.random.PRNGKey(0), hp)
+    return g, env_params, hp, _learner(g, env_params, hp).init(jax.random.PRNGKey(0))
 
 
 def test_gae_matches_a_numpy_loop():
@@ -136,7 +152,7 @@ def test_rollout_equals_a_python_loop(start):
         s, traj, last_value = _rollout(ARCH, g, CFG, s, env_params)
         trajs.append(traj)
     traj = jax.tree.map(lambda *x: np.concatenate(x), *trajs)
-    step = jax.jit(lambda c: ppo.transition(ARCH, g, state.params, env_params, c))
+    step = jax.jit(lambda c: _learner(g, env_params).transition(state.params, c))
     c, records = (state.games, state.key), []
     for _ in range(3 * CFG.unroll):
         c, r = step(c)
@@ -181,7 +197,7 @@ def test_step_learns_from_its_own_rollout(start):
     logits, _ = ppo.policy_value(ARCH, state.params, traj["obs"])
 
     frozen = hp.replace(opt=hp.opt.replace(lr=jnp.zeros(())))
-    new, metrics = ppo.ppo_step(ARCH, g, CFG, _copy(state), frozen, env_params)
+    new, metrics = _ppo_step(ARCH, g, CFG, _copy(state), frozen, env_params)
     jax.tree.map(np.testing.assert_array_equal, new.params, state.params)
     np.testing.assert_allclose(new.games.obs, rolled.games.obs, rtol=1e-5, atol=1e-6)
     assert int(new.step) == 1
@@ -197,7 +213,7 @@ def test_step_learns_from_its_own_rollout(start):
     assert metrics["ratios"].shape == (len(jax.tree.leaves(state.params)),)
     assert bool(metrics["finite"]) and not bool(metrics["diverged"])
 
-    moved, metrics = ppo.ppo_step(ARCH, g, CFG, _copy(state), hp, env_params)
+    moved, metrics = _ppo_step(ARCH, g, CFG, _copy(state), hp, env_params)
     assert float(metrics["terms"]["approx_kl"]) > 1e-7
     assert not np.array_equal(moved.params["policy"]["kernel"], state.params["policy"]["kernel"])
     assert float(metrics["max_ratio"]) > 0 and not bool(metrics["diverged"])
@@ -210,7 +226,7 @@ def test_hparams_are_traced_so_a_vmap_sweeps_them(start):
     hps = jax.tree.map(lambda *x: jnp.stack(x), PPOHParams.create(lr=1e-4, gamma=0.9, entropy_coef=0.0),
                        PPOHParams.create(lr=1e-3, gamma=0.99, entropy_coef=0.01))
     states = jax.tree.map(lambda x: jnp.stack([x, x]), state)
-    out, metrics = jax.eval_shape(jax.vmap(lambda s, h: ppo.ppo_step_fn(ARCH, g, CFG, s, h, env_params)), states, hps)
+    out, metrics = jax.eval_shape(jax.vmap(lambda s, h: PPO(ARCH, g, CFG, h, env_params).train_step(s)), states, hps)
     assert metrics["loss"].shape == (2,) and metrics["action_mean"].shape == (2, 3)
     assert out.games.obs.shape == (2,) + state.games.obs.shape
 
@@ -242,7 +258,7 @@ def test_ppo_learns_a_trivially_learnable_reward(start):
     g, env_params, hp, state = start
     state = _copy(state)
     for _ in range(30):
-        state, metrics = ppo.ppo_step(ARCH, g, CFG, state, hp, env_params)
+        state, metrics = _ppo_step(ARCH, g, CFG, state, hp, env_params)
     assert not bool(metrics["diverged"])
     assert float(metrics["action_mean"][1]) > 0.9 and float(metrics["action_mean"][0]) < 0.1
     seeds = np.arange(1000, 1016)

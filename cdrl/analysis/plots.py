@@ -10,7 +10,7 @@
 - `code_error.png`: code-prediction error MSE(d_t, k_t) over training, for runs that log it (fig 5.6);
 - `prediction_<run>.png`: input frame, predicted next frame, true next frame, difference (fig 5.2);
 - `rollout_<run>.png`: an open-loop rollout fed with the model's own predictions (these two
-  figures: `cdrl.analysis.frames`);
+  figures: `cdrl.analysis.frame_figures`);
 - `bce_bars.png`: train vs held-out BCE per run, with the copy-last-frame baseline (fig 5.9);
 - `open_loop.png`: the held-out excess ratio at every step of predictions fed back for 15 steps
   (`cdrl.evaluation.multistep`), every run, against copying the last real frame as long.
@@ -31,9 +31,9 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-# The figures of a model's predicted frames live in cdrl.analysis.frames; named here too, as every
+# The figures of a model's predicted frames live in cdrl.analysis.frame_figures; named here too, as every
 # other figure is.
-from cdrl.analysis.frames import (PREDICTION_SIZE, Rollout, error_range, frame_range,  # noqa: F401
+from cdrl.analysis.frame_figures import (PREDICTION_SIZE, Rollout, error_range, frame_range,  # noqa: F401
                                   open_loop_predictions, prediction_figure, rollout_figure, rollout_size)
 from cdrl.analysis.report import (Run, evaluate_model, load_run, restore_model, run_episodes, running_mean,
                                   training_loss)

@@ -7,7 +7,7 @@ game's return and length up to its first episode end. A learned policy takes its
 an argument, `init(key, params)` and `step(key, state, obs, params)`, passed traced (`play(...,
 params=)`), so one compiled program plays it at every evaluation of a run: `controller_policy`
 gives a trained controller variant so, without exploration noise (it executes ã_t and feeds it
-back, as in training), `cdrl.training.ppo.ppo_policy` a PPO policy.
+back, as in training), `cdrl.learners.ppo.ppo_policy` a PPO policy.
 
 `compare_policies` is the protocol every figure of control uses: the learned policies and the
 reference policies (`REFERENCES`: uniform random, random turning that never accelerates, the

@@ -10,7 +10,7 @@ reward variants, a code for the next reward (decoded by the reward head D_r):
   outputs õ_{t+1}, ã_{t+1}, r̃_{t+1}.
 
 `a_t` is whatever the step's input carries: offline, the recorded action; online
-(`cdrl.training.online`), the model's own previous output ã_t (plus exploration noise), so that
+(`cdrl.learners.thesis_ascent`), the model's own previous output ã_t (plus exploration noise), so that
 gradients flow back through ã into D_a and E_a.
 """
 from __future__ import annotations

@@ -18,8 +18,8 @@ import math
 from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
 from cdrl.models.base import Variant
-from cdrl.training.dream import CONTROLLERS
-from cdrl.training.online import SCOPES
+from cdrl import learners
+from cdrl.learners.thesis_ascent import SCOPES
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
 
 # option -> value, per recipe. Options not listed keep their field default.
@@ -55,18 +55,21 @@ DREAM_OVERRIDES: dict[str, dict[str, object]] = {
 # (measured, final_proposal, small preset, lr 1: at weight 0.01 the reward error jumps from
 # 0.15 to 7 at step 1 and every LSTM and encoder gradient is 0 by step 50, the held-out excess
 # ratio stuck at 1.46; at weight 0 it reaches 0.74 in 4000 steps). Its reward head is left to
-# the online run, which steps it with its own optimiser (`cdrl.training.dream`).
+# the online run, which steps it with its own optimiser (`cdrl.learners.replay_base`).
 OFFLINE_WORLD_MODEL: dict[str, dict[str, object]] = {"thesis": {}, "fast": {"reward_weight": 0.0}}
 # Policies trained without a world model, and what every recipe sets for them: PPO's usual
 # numbers (Adam lr 2.5e-4, gradient norm clipped at 0.5, 16 games x 32 steps per update).
-AGENTS = {"ppo": "proximal policy optimisation: model-free, from the same frames (cdrl.training.ppo)"}
 AGENT_RECIPE: dict[str, object] = {
     "optimizer": "adam", "lr": 2.5e-4, "momentum": 0.9, "b2": 0.999, "weight_decay": 0.0, "grad_clip": 0.5,
     "lr_schedule": "constant", "lr_warmup": 0, "batch": 16, "unroll": 32, "obs_norm": "data", "fc_init_gain": 1.0,
     "reward_weight": 0.0,
 }
+# What each family of learners (`Learner.recipe_family`) takes over its recipe's numbers.
+FAMILY_OVERRIDES: dict[str, dict[str, dict[str, object]]] = {
+    "ascent": ONLINE_OVERRIDES,
+    "replay": {name: {**ONLINE_OVERRIDES[name], **DREAM_OVERRIDES[name]} for name in RECIPES},
+}
 DEFAULT_RECIPE = "fast"
-CONTROLLER_CHOICES = ("rollout",) + CONTROLLERS + ("none",)
 OBS_NORMS = ("none", "data")
 
 
@@ -83,7 +86,7 @@ def _recipe_opt(help: str):
 class RunConfig:
     """Everything that defines a training run (the CLI's `train` options map onto it)."""
 
-    variant: str = _opt("main", "model variant, or ppo (see `cdrl variants`)")
+    variant: str = _opt("main", "model variant (see `cdrl variants`); the world model of a model-based learner")
     preset: str = _opt("small", "architecture preset: thesis (150x150, LSTM 512), small (64x64), small-128 (its "
                                 "networks on 128x128), small-max (small, the frame shrunk after a 5x5 max filter) "
                                 "or tiny")
@@ -133,13 +136,16 @@ class RunConfig:
                                  "(rollout), the chance a button is drawn uniformly (imagine, critic, value)")
     noise_decay: float = _opt(0.999, "online variants: per-update decay factor of the exploration")
     warmup_steps: int = _opt(100, "online variants: updates of pure model learning before the ascent term")
-    controller: str = _opt("rollout", "online variants: how the controller learns: rollout (the thesis: reward "
-                                      "ascent through the real chunk), imagine (ascent through imagined rollouts), "
-                                      "critic (an actor-critic in imagination), value (the buttons' values one "
-                                      "model step ahead, learnt from real returns), real (an actor-critic on the model's "
-                                      "states of the chunk just played, from its real rewards); imagine, critic, value "
-                                      "and real keep a replay buffer. none: no controller, the world model learns offline on recorded "
-                                      "episodes (their actions and rewards), a start for --init-from")
+    learner: str = _opt("thesis_ascent", "how a controller variant learns to control (`cdrl learners`): "
+                                         "thesis_ascent (the thesis: reward ascent through the real chunk), "
+                                         "imagined_ascent (ascent through imagined rollouts), imagination_ac (an "
+                                         "actor-critic in imagination), one_step_q (the buttons' values one model "
+                                         "step ahead, from real returns), onpolicy_ac (an actor-critic on the "
+                                         "model's states of the chunk just played, from its real rewards); the "
+                                         "last four keep a replay buffer. world_model: no controller, the world "
+                                         "model learns offline on recorded episodes, a start for --init-from. ppo: "
+                                         "model-free, from the same frames, whatever the variant. Old names: "
+                                         "rollout, imagine, critic, value, real, none")
     init_from: str = _opt("", "a run directory whose trained world model (its newest good checkpoint; same variant "
                               "and preset) this run starts from, with its input normalisation ('': a fresh model)")
     replay: int = _opt(64, "online variants, imagine, critic, value and real: chunks kept in the replay buffer")
@@ -157,11 +163,19 @@ class RunConfig:
                                "real frames every K steps of a chunk (1: teacher forcing); 'K1,K2,...' a "
                                "curriculum over equal parts of --steps (Oh et al. 2015: 1,3,5)")
 
-    def __post_init__(self):
+    controller: dataclasses.InitVar[str | None] = None  # the old name of `learner`, kept for one release
+
+    def __post_init__(self, controller: str | None = None):
+        if controller is not None:
+            object.__setattr__(self, "learner", controller)
+        if self.variant == "ppo":  # the old way to name the model-free learner
+            object.__setattr__(self, "learner", "ppo")
+            object.__setattr__(self, "variant", "main")
+        object.__setattr__(self, "learner", learners.canonical(self.learner))
         if self.recipe not in RECIPES:
             raise ValueError(f"unknown recipe {self.recipe!r}; choose one of {sorted(RECIPES)}")
-        if self.variant not in VARIANTS and self.variant not in AGENTS:
-            raise ValueError(f"unknown variant {self.variant!r}; choose one of {sorted(VARIANTS) + sorted(AGENTS)}")
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant {self.variant!r}; choose one of {sorted(VARIANTS)}")
         for name, value in self.recipe_values().items():
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
@@ -178,16 +192,16 @@ class RunConfig:
         if self.kind != "offline" and curriculum != (1,):
             raise ValueError(f"multistep {self.multistep!r} is for offline runs (teacher-forced on recorded "
                              f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
-        takes_balanced = (self.variant in VARIANTS and VARIANTS[self.variant].predicts_reward
-                          and not (self.kind == "online" and self.controller == "rollout"))
+        takes_balanced = (self.kind != "model_free" and VARIANTS[self.variant].predicts_reward
+                          and not (self.kind == "online" and self.learner == "thesis_ascent"))
         if self.reward_balanced_weight > 0 and not takes_balanced:
             raise ValueError(f"reward_balanced_weight {self.reward_balanced_weight!r} weighs a reward head's error in "
                              f"offline training and the replay learners' model updates; {self.variant!r} "
-                             f"{'with controller rollout ' if self.kind == 'online' else ''}has no such term "
-                             "(reward_prediction or final_proposal, offline or with controller imagine, critic, "
-                             "value or real)")
+                             f"{'with learner thesis_ascent ' if self.kind == 'online' else ''}has no such term "
+                             "(reward_prediction or final_proposal, offline or with a learner that keeps a replay "
+                             "buffer)")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
-                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "controller": CONTROLLER_CHOICES}
+                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS)}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
@@ -199,23 +213,24 @@ class RunConfig:
                                      "train on data 'game'")
 
     def recipe_values(self) -> dict[str, object]:
-        """The options the run's recipe sets for its variant."""
-        if self.variant in AGENTS:
+        """The options the run's recipe sets for its variant and learner."""
+        if self.kind == "model_free":
             return AGENT_RECIPE
         if not VARIANTS[self.variant].has_controller:
             return RECIPES[self.recipe]
-        if self.controller == "none":  # offline, teacher-forced as the replay learner's model is
+        if self.learner == learners.OFFLINE:  # offline, teacher-forced as the replay learner's model is
             return {**RECIPES[self.recipe], **DREAM_OVERRIDES[self.recipe], **OFFLINE_WORLD_MODEL[self.recipe]}
-        dream = DREAM_OVERRIDES[self.recipe] if self.controller != "rollout" else {}
-        return {**RECIPES[self.recipe], **ONLINE_OVERRIDES[self.recipe], **dream}
+        family = learners.learner_class(self.learner).recipe_family
+        return {**RECIPES[self.recipe], **FAMILY_OVERRIDES[family][self.recipe]}
 
     @property
     def kind(self) -> str:
         """How the run trains: "offline" on recorded episodes (a controller variant too, with
-        controller none), "online" (a controller variant against the game) or "ppo"."""
-        if self.variant in AGENTS:
-            return self.variant
-        return "online" if VARIANTS[self.variant].has_controller and self.controller != "none" else "offline"
+        learner world_model), "online" (a learner that plays the game with a world model) or
+        "model_free" (one that plays without: PPO, or another model-free learner)."""
+        if self.learner != learners.OFFLINE and not learners.learner_class(self.learner).has_world_model:
+            return "model_free"
+        return "online" if VARIANTS[self.variant].has_controller and self.learner != learners.OFFLINE else "offline"
 
     @property
     def arch(self) -> ArchConfig:
@@ -309,7 +324,8 @@ def check_value(name: str, kind: str, value) -> None:
 
 def saved_config(saved: dict) -> RunConfig:
     """A `RunConfig` from a `config.json`. A config written before recipes existed holds
-    no recipe: the options it lacks are the thesis recipe's, which is how it was trained."""
+    no recipe: the options it lacks are the thesis recipe's, which is how it was trained. Its
+    learner may go by an old name (`controller`, `variant` ppo)."""
     return RunConfig(**{"recipe": "thesis", **saved})
 
 

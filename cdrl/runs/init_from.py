@@ -18,7 +18,7 @@ import jax
 
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
-from cdrl.runs.online import learner, model_params
+from cdrl.runs.online import build_learner
 from cdrl.runs.rundir import RunDir
 from cdrl.training.step import init_state
 
@@ -33,18 +33,18 @@ def restore_params(run: RunDir) -> tuple[RunConfig, Any, int]:
     ckpts = run.read_checkpoints()
     if not ckpts.steps():
         raise FileNotFoundError(f"{run.checkpoint_dir} holds no checkpoint")
-    if cfg.kind == "ppo":
-        raise ValueError(f"run {run.path} trains ppo, which has no world model")
+    if cfg.kind == "model_free":
+        raise ValueError(f"run {run.path} trains {cfg.learner}, which has no world model")
     # The abstract shape of a state is all a restore needs; tracing it is much cheaper than
     # initialising one eagerly.
     if cfg.kind == "online":
-        program = learner(cfg)
-        like = jax.eval_shape(lambda: program.fresh(cfg.seed))
+        program = build_learner(cfg)
+        like = jax.eval_shape(lambda: program.init(jax.random.PRNGKey(cfg.seed)))
     else:
         variant = make_variant(cfg.variant, cfg.arch)
         like = jax.eval_shape(lambda: init_state(variant, jax.random.PRNGKey(0), cfg.batch, cfg.hparams(variant)))
     state, meta = ckpts.restore_newest(like)
-    return cfg, (model_params(state) if cfg.kind == "online" else state.params), int(meta["step"])
+    return cfg, (program.world_model(state) if cfg.kind == "online" else state.params), int(meta["step"])
 
 
 def source_of(cfg: RunConfig) -> tuple[RunConfig, Any] | None:
@@ -54,8 +54,8 @@ def source_of(cfg: RunConfig) -> tuple[RunConfig, Any] | None:
     if not cfg.init_from:
         return None
     where = f"init_from {cfg.init_from}"
-    if cfg.kind == "ppo":
-        raise ValueError(f"{where}: ppo has no world model to start from another run's")
+    if cfg.kind == "model_free":
+        raise ValueError(f"{where}: {cfg.learner} has no world model to start from another run's")
     try:
         src, params, _ = restore_params(RunDir(cfg.init_from))
     except (FileNotFoundError, ValueError) as exc:

@@ -31,7 +31,7 @@ from cdrl.runs.distributed import is_primary, primary_first
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.tboard import prediction_image
-from cdrl.runs.writer import run_writer
+from cdrl.runs.record_sinks import run_writer
 from cdrl.training.loop import Plan, TrainJob, host_loop
 from cdrl.training.parallel import DataParallel, local_copy
 from cdrl.training.step import init_state, ratio_names

@@ -1,6 +1,6 @@
-"""Runs whose jitted program plays the built-in game: the controller variants (action_loop,
-reward_prediction, final_proposal) trained online, PPO (`cdrl train --variant ppo`), and
-`GameJob`, the host loop's job for every such program.
+"""Runs whose jitted program plays the built-in game: any learner of `cdrl.learners` (the
+controller variants' learners, PPO, a user's own), and `GameJob`, the host loop's job for
+every such learner.
 
 The run directory has the layout of offline runs; `metrics.jsonl` lines add the real reward
 per game step, the finished episodes' mean return, the mean executed action and what the
@@ -17,25 +17,23 @@ import contextlib
 import dataclasses
 import sys
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import numpy as np
 
+from cdrl import learners
 from cdrl.evaluation.metrics import check_episodes, excess_ratio
-from cdrl.evaluation.play import EVAL_SEED, compare_policies, controller_policy, format_table
+from cdrl.evaluation.play import EVAL_SEED, compare_policies, format_table
+from cdrl.learners.api import Learner, train_program
 from cdrl.models import make_variant
 from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.config import RunConfig
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import run_game, with_obs_norm
-from cdrl.runs.writer import run_writer
+from cdrl.runs.record_sinks import run_writer
 from cdrl.training.loop import Job, Plan, host_loop
 from cdrl.training.monitor import group_names
-from cdrl.training.dream import DreamConfig, DreamHParams, DreamState, dream_step, init_dream
-from cdrl.training.online import OnlineConfig, OnlineHParams, OnlineState, init_online, online_step
-from cdrl.training.optim import OptHParams
-from cdrl.training.ppo import PPOConfig, PPOHParams, init_ppo, ppo_policy, ppo_step
 
 
 class GameJob(Job):
@@ -45,11 +43,12 @@ class GameJob(Job):
     form of `cdrl.evaluation.play`, and `name` its row in the evaluation table. Metrics named
     in `extras` are logged as they are."""
 
-    def __init__(self, cfg: RunConfig, program: Callable, ckpts: Checkpoints, names: list[str], name: str,
-                 policy: Callable, game, env_params, extras: tuple[str, ...] = ()):
-        self.cfg, self.program, self.ckpts, self.name, self.policy = cfg, program, ckpts, name, policy
-        self.game, self.env_params, self.extras = game, env_params, extras
-        self.desc = f"{name} {cfg.variant}"
+    def __init__(self, cfg: RunConfig, learner: Learner, ckpts: Checkpoints, names: list[str]):
+        self.cfg, self.learner, self.ckpts, self.name = cfg, learner, ckpts, learner.row
+        self.program = lambda state: train_program(learner, state)
+        self.policy = learner.policy
+        self.game, self.env_params, self.extras = learner.game, learner.env_params, learner.extras
+        self.desc = f"{learner.name} {cfg.variant}" if learner.has_world_model else learner.name
         self.frames_per_step = cfg.batch * cfg.unroll
         self.ratio_names = names
         self.threshold = cfg.diverge_threshold
@@ -93,102 +92,34 @@ class GameJob(Job):
         return {"loss": f"{records[0]['loss']:.4f}", "reward": f"{records[0]['reward']:.3f}"}
 
 
-@dataclasses.dataclass(frozen=True)
-class Learner:
-    """A program that plays the game as it learns, as a run builds it from its config: its
-    model (a variant, or PPO's architecture), the game and its parameters, the program's static
-    config and traced hyper-parameters, its `init` and jitted `step` (each called as
-    `fn(model, game, config, ..., hp, env_params)`), the name of its policy's row, the policy of
-    a state (noise-free, in the form of `cdrl.evaluation.play`), the state's parameters whose
-    norm ratios are logged, and the metrics its records add."""
-
-    model: Any
-    game: Any
-    env_params: Any
-    config: Any
-    hp: Any
-    init: Callable
-    step: Callable
-    name: str
-    policy: Callable
-    params: Callable
-    extras: tuple[str, ...] = ()
-
-    def fresh(self, seed: int):
-        return self.init(self.model, self.game, self.env_params, self.config, jax.random.PRNGKey(seed), self.hp)
-
-    def program(self, state):
-        return self.step(self.model, self.game, self.config, state, self.hp, self.env_params)
-
-    def job(self, cfg: RunConfig, ckpts: Checkpoints, state) -> GameJob:
-        return GameJob(cfg, self.program, ckpts, group_names(self.params(state)), self.name,
-                       lambda s: self.policy(self.model, self.params(s)), self.game, self.env_params, self.extras)
-
-
-def learner(cfg: RunConfig) -> Learner:
-    """The program a run of `cfg` plays the game with: PPO, the thesis's online learner
-    (`--controller rollout`), or the learner with a replay buffer and imagination."""
+def build_learner(cfg: RunConfig) -> Learner:
+    """The learner a run of `cfg` plays the game with (`cfg.learner`, from the registry), its
+    model built from the run's variant and preset (a model-free learner gets the preset's
+    architecture), its game from the run's level."""
     game, env_params = run_game(cfg)
-    if cfg.kind == "ppo":
-        pcfg = PPOConfig(num_envs=cfg.batch, unroll=cfg.unroll, epochs=cfg.ppo_epochs,
-                         minibatches=cfg.ppo_minibatches)
-        hp = PPOHParams.create(opt=cfg.opt_hparams(), gamma=cfg.gamma, gae_lambda=cfg.gae_lambda,
-                               clip_eps=cfg.clip_eps, value_coef=cfg.value_coef, entropy_coef=cfg.entropy_coef,
-                               diverge_threshold=cfg.diverge_threshold)
-        return Learner(cfg.arch, game, env_params, pcfg, hp, init_ppo, ppo_step, "ppo", ppo_policy,
-                       lambda s: s.params)
-    variant = make_variant(cfg.variant, cfg.arch)
-    if cfg.controller == "rollout":
-        hp = OnlineHParams.create(opt=cfg.opt_hparams(), ascent=cfg.ascent, reward_weight=cfg.reward_weight,
-                                  noise_std=cfg.noise_std, noise_decay=cfg.noise_decay,
-                                  warmup_steps=cfg.warmup_steps, diverge_threshold=cfg.diverge_threshold,
-                                  scope=cfg.scope)
-        return Learner(variant, game, env_params, OnlineConfig(num_envs=cfg.batch, unroll=cfg.unroll), hp,
-                       init_online, online_step, "controller", controller_policy, model_params,
-                       ("noise_std", "ascent_on"))
-    dcfg = DreamConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay, model_updates=cfg.model_updates,
-                       horizon=cfg.horizon, controller=cfg.controller, epochs=cfg.ppo_epochs,
-                       scope=cfg.scope if cfg.controller == "real" else "controller")
-    hp = DreamHParams.create(cfg.hparams(variant), ctrl_opt=OptHParams.create("adam", lr=cfg.ctrl_lr, grad_clip=100.0),
-                             ascent=cfg.ascent, explore=cfg.noise_std, explore_decay=cfg.noise_decay,
-                             warmup_steps=cfg.warmup_steps, gamma=cfg.gamma, lam=cfg.gae_lambda,
-                             entropy=cfg.entropy_coef, clip_eps=cfg.clip_eps)
-    return Learner(variant, game, env_params, dcfg, hp, init_dream, dream_step, "controller", controller_policy,
-                   model_params, ("explore", "controller_on"))
+    cls = learners.learner_class(cfg.learner)
+    model = make_variant(cfg.variant, cfg.arch) if cls.has_world_model else cfg.arch
+    return cls.from_run(cfg, model, game, env_params)
 
 
-def model_params(state):
-    """The world model's parameters (the controller's included) of an online program's state."""
-    if isinstance(state, DreamState):
-        return state.model.params
-    if isinstance(state, OnlineState):
-        return state.train.params
-    raise TypeError(f"{type(state).__name__} holds no world model")
-
-
-def with_model_params(state, params):
-    """An online program's `state` with the world model's parameters `params`."""
-    if isinstance(state, DreamState):
-        return state.replace(model=state.model.replace(params=params))
-    if isinstance(state, OnlineState):
-        return state.replace(train=state.train.replace(params=params))
-    raise TypeError(f"{type(state).__name__} holds no world model")
+def game_job(cfg: RunConfig, learner: Learner, ckpts: Checkpoints, state) -> GameJob:
+    return GameJob(cfg, learner, ckpts, group_names(learner.watched(state)))
 
 
 def online_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool | None = None,
                      allow_data_change: bool = False, init_params=None) -> dict:
-    """A controller variant, or PPO, trained against the game in `run`; ends with the policy
+    """A learner trained against the game in `run`; ends with the policy
     table on stderr. `init_params`: the world model's parameters to start from (`--init-from`).
     (It plays the game: there is no data set to change, so `allow_data_change` has nothing to
     allow.)"""
     if not resume:
         cfg = with_obs_norm(cfg, run.data_cache)
-    program = learner(cfg)
-    state = program.fresh(cfg.seed)
+    learner = build_learner(cfg)
+    state = learner.init(jax.random.PRNGKey(cfg.seed))
     if init_params is not None:
-        state = with_model_params(state, init_params)
+        state = learner.with_world_model(state, init_params)
     opened = run.open(cfg, state, resume)
-    job = program.job(cfg, opened.checkpoints, opened.state)
+    job = game_job(cfg, learner, opened.checkpoints, opened.state)
     plan = Plan(steps=cfg.steps, start=opened.start, eval_every=cfg.eval_every, checkpoint_every=cfg.checkpoint_every)
     sink = run_writer(run, opened.start, cfg.tensorboard)
     with contextlib.closing(sink):
@@ -206,12 +137,12 @@ def restore_learner(run: RunDir) -> tuple[RunConfig, Learner, Any]:
     cfg = run.read_config()
     if cfg.kind == "offline":
         if make_variant(cfg.variant, cfg.arch).has_controller:
-            raise ValueError(f"run {run.path} trains the world model of {cfg.variant!r} offline (controller none), "
+            raise ValueError(f"run {run.path} trains the world model of {cfg.variant!r} offline (learner world_model), "
                              "so it has no controller to play with; train one from it with --init-from")
         raise ValueError(f"run {run.path} trains {cfg.variant!r}, which has no controller to play with")
-    program = learner(cfg)
-    state, _ = run.read_checkpoints().restore_newest(jax.eval_shape(lambda: program.fresh(cfg.seed)))
-    return cfg, program, state
+    learner = build_learner(cfg)
+    state, _ = run.read_checkpoints().restore_newest(jax.eval_shape(lambda: learner.init(jax.random.PRNGKey(cfg.seed))))
+    return cfg, learner, state
 
 
 def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL_SEED) -> dict[str, dict]:
@@ -220,5 +151,5 @@ def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL
     games."""
     check_episodes(episodes)
     run = RunDir(run_dir)
-    cfg, program, state = restore_learner(run)
-    return program.job(cfg, run.read_checkpoints(), state).play(state, episodes, seed)
+    cfg, learner, state = restore_learner(run)
+    return game_job(cfg, learner, run.read_checkpoints(), state).play(state, episodes, seed)

@@ -49,7 +49,7 @@ from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_o
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, gather_progress, read_progress, read_sweep,
                                   restore_configs, resume_point, save_configs, write_progress, write_sweep)
 from cdrl.runs.tboard import prediction_image
-from cdrl.runs.writer import RunWriter
+from cdrl.runs.record_sinks import RunWriter
 from cdrl.training.loop import NullSink, Plan, Sink, host_loop
 from cdrl.training.parallel import ConfigAxis
 

@@ -1,5 +1,5 @@
-"""`train_run`: start or resume the run of a config in a run directory. Controller variants
-and PPO train online against the game (`cdrl.runs.online`), the others offline on recorded
+"""`train_run`: start or resume the run of a config in a run directory. A learner that plays
+the game (`cdrl.learners`) trains online against it (`cdrl.runs.online`), the others offline on recorded
 episodes (`cdrl.runs.offline`), on one device or data parallel over several, which may belong
 to several processes (`cdrl train --distributed`: process 0 holds the lock and writes the
 run's files)."""
@@ -37,11 +37,11 @@ def train_run(cfg: RunConfig | None, run_dir: str | Path, resume: bool = False, 
     with all_or_none(lock, "locking the run directory"):  # every process knows before any writes
         resolved = all_or_none(lambda: run.config_for(cfg, resume, overrides), "reading the run's config")
         if resolved.kind != "offline" and resolved.devices != 1:
-            raise ValueError(f"devices={resolved.devices}: controller variants and ppo train online on one device "
+            raise ValueError(f"devices={resolved.devices}: learners that play the game train on one device "
                              "(data-parallel training covers the offline variants); use --devices 1")
         source = None if resume else source_of(resolved)
         if source is not None:
             resolved = source[0]
-        runs = {"offline": offline_train_run, "online": online_train_run, "ppo": online_train_run}
+        runs = {"offline": offline_train_run, "online": online_train_run, "model_free": online_train_run}
         return runs[resolved.kind](resolved, run, resume, progress, allow_data_change,
                                    init_params=None if source is None else source[1])

@@ -16,7 +16,7 @@ owns everything around them, once for all of them:
 - when to evaluate (`Plan.eval_every`, and at the end) and when to checkpoint
   (`Plan.checkpoint_every`, and at the end);
 - where records go: one `Sink` per lane (a run directory's `metrics.jsonl`, `eval.jsonl` and
-  TensorBoard in `cdrl.runs.writer`; a list in memory for `fit`);
+  TensorBoard in `cdrl.runs.record_sinks`; a list in memory for `fit`);
 - the progress bar.
 
 A lane is one independent run inside the job's program: a sweep trains its configurations as

@@ -1,11 +1,11 @@
-"""A model-free baseline: proximal policy optimisation (PPO) against the built-in game, as one program.
+"""`ppo`: a model-free baseline, proximal policy optimisation against the built-in game.
 
-One `ppo_step` is a jitted function in the style of purejaxrl:
+One train step is a jitted function in the style of purejaxrl:
 
 1. rollout: a `lax.scan` over T steps in which B games (`vmap`) are played by the current
    policy; every step records the frame, the sampled buttons, their log-probability, the
    value estimate, the reward and whether the episode ended. A finished game is reset at
-   once (as in `cdrl.training.online`), and its return and length are counted;
+   once (`cdrl.learners.game_batch`), and its return and length are counted;
 2. advantages: the value of the last frame bootstraps generalised advantage estimation
    (GAE, a reverse `lax.scan`); the value targets are the advantages plus the values;
 3. learning: `epochs` passes over the T * B samples, each in a fresh random order cut into
@@ -51,7 +51,8 @@ import jax.numpy as jnp
 from cdrl.data.frames import model_obs
 from cdrl.models import nets
 from cdrl.models.arch import ArchConfig
-from cdrl.training.online import Games, reset_games, step_games
+from cdrl.learners.api import Learner
+from cdrl.learners.game_batch import Games, Observation, observe, reset_games, step_games
 from cdrl.training.optim import OptHParams, init_opt_state
 from cdrl.training.step import guarded_update, run_once
 
@@ -180,41 +181,12 @@ def sample_action(key: jax.Array, logits: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------- games and rollout
 
 
-def init_ppo(arch: ArchConfig, game, env_params, cfg: PPOConfig, key: jax.Array, hp: PPOHParams) -> PPOState:
-    """Fresh parameters, optimiser state and B new games."""
-    return run_once(_init_ppo, arch, game, env_params, cfg, key, hp, static_argnums=(0, 1, 3))
-
-
 def _init_ppo(arch, game, env_params, cfg, key, hp) -> PPOState:
     k_params, k_env, k_run = jax.random.split(key, 3)
     params = init_params(arch, k_params, cfg.hidden)
     return PPOState(params=params, opt_state=init_opt_state(hp.opt, params),
                     games=reset_games(game, env_params, k_env, cfg.num_envs, arch), key=k_run,
                     step=jnp.zeros((), jnp.int32))
-
-
-def transition(arch: ArchConfig, game, params, env_params, c: tuple[Games, jax.Array]):
-    """One step of B games on the rollout carry `c` = (games, key) (`cdrl.training.online.step_games`:
-    a game that ends is replaced by a new one at once). Returns (next c, record of the step)."""
-    games, key = c
-    key, k_act, k_game = jax.random.split(key, 3)
-    logits, value = policy_value(arch, params, games.obs)
-    action = sample_action(k_act, logits)
-    after, _, reward, stats = step_games(game, env_params, games, action, k_game, arch)
-    record = {"obs": games.obs, "action": action, "log_prob": log_prob(logits, action), "value": value,
-              "reward": reward, "done": stats["done"], "finished_return": stats["finished_return"],
-              "finished_length": stats["finished_length"]}
-    return (after, key), record
-
-
-def rollout(arch: ArchConfig, game, cfg: PPOConfig, state: PPOState, env_params):
-    """T steps of the B games with the state's parameters (a `lax.scan` of `transition`).
-    Returns (state with the games and key moved on; records `[T, B, ...]`; value of the last
-    frame `[B]`)."""
-    (games, key), traj = jax.lax.scan(lambda c, _: transition(arch, game, state.params, env_params, c),
-                                      (state.games, state.key), None, length=cfg.unroll)
-    _, last_value = policy_value(arch, state.params, games.obs)
-    return state.replace(games=games, key=key), traj, last_value
 
 
 def gae(rewards, values, dones, last_value, gamma, gae_lambda):
@@ -308,27 +280,81 @@ def flatten_rollout(traj, advantages):
     return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
 
 
-def ppo_step_fn(arch: ArchConfig, game, cfg: PPOConfig, state: PPOState, hp: PPOHParams, env_params):
-    """One rollout of T steps of B games, GAE, and `epochs` x `minibatches` updates; see the
-    module docstring. Returns (state, metrics)."""
-    rolled, traj, last_value = rollout(arch, game, cfg, state, env_params)
-    advantages = gae(traj["reward"], traj["value"], traj["done"], last_value, hp.gamma, hp.gae_lambda)
-    key, k_update = jax.random.split(rolled.key)
-    params, opt_state, per_update = update(arch, cfg, state.params, state.opt_state,
-                                           flatten_rollout(traj, advantages), hp, k_update)
-    new_state = rolled.replace(params=params, opt_state=opt_state, key=key, step=state.step + 1)
-    metrics = {
-        **reduce_updates(per_update),
-        "reward": jnp.mean(traj["reward"]),
-        "episodes": jnp.sum(traj["done"]),
-        "return_sum": jnp.sum(traj["finished_return"]),
-        "length_sum": jnp.sum(traj["finished_length"]),
-        "action_mean": jnp.mean(traj["action"], axis=(0, 1)),
-    }
-    return new_state, metrics
+class PPO(Learner):
+    """PPO; see the module docstring. `model` is the `ArchConfig` of the policy's encoder."""
 
+    name = "ppo"
+    row = "ppo"
+    has_world_model = False
 
-ppo_step = jax.jit(ppo_step_fn, static_argnums=(0, 1, 2), donate_argnums=3)
+    @classmethod
+    def from_run(cls, cfg, model, game, env_params) -> "PPO":
+        config = PPOConfig(num_envs=cfg.batch, unroll=cfg.unroll, epochs=cfg.ppo_epochs, minibatches=cfg.ppo_minibatches)
+        hp = PPOHParams.create(opt=cfg.opt_hparams(), gamma=cfg.gamma, gae_lambda=cfg.gae_lambda,
+                               clip_eps=cfg.clip_eps, value_coef=cfg.value_coef, entropy_coef=cfg.entropy_coef,
+                               diverge_threshold=cfg.diverge_threshold)
+        return cls(model, game, config, hp, env_params)
+
+    def init(self, key: jax.Array) -> PPOState:
+        """Fresh parameters, optimiser state and B new games."""
+        return run_once(_init_ppo, self.model, self.game, self.env_params, self.config, key, self.hp,
+                        static_argnums=(0, 1, 3))
+
+    def act(self, state: PPOState, obs: Observation, key: jax.Array):
+        """Buttons sampled from the policy; `info`: their log-probability and the value."""
+        logits, value = policy_value(self.model, state.params, obs.frames)
+        action = sample_action(key, logits)
+        return state, action, {"log_prob": log_prob(logits, action), "value": value}
+
+    def transition(self, params, c: tuple[Games, jax.Array]):
+        """One step of B games on the rollout carry `c` = (games, key). Returns (next c, record
+        of the step)."""
+        games, key = c
+        key, k_act, k_game = jax.random.split(key, 3)
+        view = PPOState(params=params, opt_state=None, games=games, key=key, step=None)
+        _, action, info = self.act(view, observe(games), k_act)
+        after, _, reward, stats = step_games(self.game, self.env_params, games, action, k_game, self.model)
+        record = {"obs": games.obs, "action": action, **info, "reward": reward, "done": stats["done"],
+                  "finished_return": stats["finished_return"], "finished_length": stats["finished_length"]}
+        return (after, key), record
+
+    def collect(self, state: PPOState):
+        """T steps of the B games with the state's parameters (a `lax.scan` of `transition`).
+        Returns (state with the games and key moved on; (records `[T, B, ...]`, value of the
+        last frame `[B]`))."""
+        (games, key), traj = jax.lax.scan(lambda c, _: self.transition(state.params, c),
+                                          (state.games, state.key), None, length=self.config.unroll)
+        _, last_value = policy_value(self.model, state.params, games.obs)
+        return state.replace(games=games, key=key), (traj, last_value)
+
+    def update(self, state: PPOState, batch):
+        """GAE on the rollout `batch` = (records, last value), then `epochs` x `minibatches`
+        updates. Returns (state, metrics)."""
+        traj, last_value = batch
+        hp = self.hp
+        advantages = gae(traj["reward"], traj["value"], traj["done"], last_value, hp.gamma, hp.gae_lambda)
+        key, k_update = jax.random.split(state.key)
+        params, opt_state, per_update = update(self.model, self.config, state.params, state.opt_state,
+                                               flatten_rollout(traj, advantages), hp, k_update)
+        new_state = state.replace(params=params, opt_state=opt_state, key=key, step=state.step + 1)
+        metrics = {
+            **reduce_updates(per_update),
+            "reward": jnp.mean(traj["reward"]),
+            "episodes": jnp.sum(traj["done"]),
+            "return_sum": jnp.sum(traj["finished_return"]),
+            "length_sum": jnp.sum(traj["finished_length"]),
+            "action_mean": jnp.mean(traj["action"], axis=(0, 1)),
+        }
+        return new_state, metrics
+
+    def train_step(self, state: PPOState):
+        return self.update(*self.collect(state))
+
+    def policy(self, state: PPOState):
+        return ppo_policy(self.model, state.params)
+
+    def watched(self, state: PPOState):
+        return state.params
 
 
 # --------------------------------------------------------------------------- playing

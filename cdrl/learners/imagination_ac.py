@@ -1,0 +1,57 @@
+"""`imagination_ac` (alias `critic`): an actor-critic in the model's imagination, DreamerV3's
+recipe for discrete actions.
+
+From every real state of a replayed chunk the model imagines `horizon` steps, the buttons
+drawn from Bernoulli(ã). A critic V(h) on the core's output learns the imagined λ-returns. The
+actor learns by REINFORCE with the returns normalised by their 5-95 % range (at least 1), plus
+an entropy bonus. The model never sees the controller's gradient, so it cannot predict more
+reward to please it.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from cdrl.learners.imagination import ImaginationConfig, imagine
+from cdrl.learners.replay_base import (ReplayLearner, ReplayState, button_entropy, button_log_prob, critic_value,
+                                       lambda_returns, starts)
+
+
+class ImaginationAC(ReplayLearner):
+    """See the module docstring. `model` is a controller variant that predicts reward."""
+
+    name = "imagination_ac"
+
+    @classmethod
+    def from_run(cls, cfg, model, game, env_params) -> "ImaginationAC":
+        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
+                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
+        return cls(model, game, config, cls.hparams(cfg, model), env_params)
+
+    def objective(self, params, critic, carry, action, frame, key):
+        """(actor loss, (critic loss, terms)) of one imagined rollout from every start."""
+        hp = self.hp
+        traj = imagine(self.model, self.config.horizon, params, carry, action, frame, key, sample=True)
+        values = critic_value(critic, jax.lax.stop_gradient(traj["h"]))  # V after each imagined step
+        rewards = jax.lax.stop_gradient(traj["reward"])
+        rets = jax.lax.stop_gradient(lambda_returns(rewards, values, values[-1], hp.gamma, hp.lam))
+        h0 = jax.lax.stop_gradient(self.model.features(carry))
+        base = critic_value(critic, h0)  # V of the state each step's buttons were drawn in
+        before = jnp.concatenate([base[None], values[:-1]], axis=0)
+        critic_loss = 0.5 * jnp.mean(jnp.square(before - rets))
+        scale = jnp.maximum(1.0, jnp.percentile(rets, 95) - jnp.percentile(rets, 5))
+        adv = jax.lax.stop_gradient((rets - before) / scale)
+        logp = button_log_prob(traj["probs"], traj["buttons"])
+        ent = button_entropy(traj["probs"])
+        actor_loss = -jnp.mean(logp * adv) - hp.entropy * jnp.mean(ent)
+        return actor_loss, (critic_loss, {"imagined_return": jnp.mean(rets[0]), "critic_loss": critic_loss,
+                                          "entropy": jnp.mean(ent)})
+
+    def replayed_update(self, state: ReplayState, chunk, carry, key, on):
+        begin = starts(self.model, jax.lax.stop_gradient(state.model.params), chunk, carry)
+
+        def losses(p, critic):
+            actor, (critic_loss, terms) = self.objective(p, critic, *begin, key)
+            return self.hp.ascent * on * actor + critic_loss, (actor, terms)
+
+        return self.controller_step(state, losses)

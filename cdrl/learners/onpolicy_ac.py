@@ -1,0 +1,125 @@
+"""`onpolicy_ac` (alias `real`): an actor-critic on the world model's states along the chunk
+just played, from its real rewards.
+
+The model gives the controller its features; the credit comes from the game. With scope `all`
+the actor's and the critic's gradients also shape the core and the encoder.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from cdrl.data.stream import Chunk
+from cdrl.learners.ppo import clipped_surrogate
+from cdrl.learners.replay_base import (ReplayConfig, ReplayLearner, ReplayState, button_entropy, button_log_prob,
+                                       critic_value, lambda_returns)
+from cdrl.training.step import step_inputs
+
+SCOPES = ("controller", "all")
+
+
+@dataclasses.dataclass(frozen=True)
+class OnPolicyConfig(ReplayConfig):
+    """`ReplayConfig`, the passes of the clipped update over each chunk played, and what its
+    gradient changes: the controller, or `all` (the core and the encoder too)."""
+
+    epochs: int = 4
+    scope: str = "controller"
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.scope not in SCOPES:
+            raise ValueError(f"scope must be controller or all, got {self.scope!r}")
+
+
+def onpolicy_returns(h_values, reward, is_first, first_after, gamma, lam):
+    """The λ-returns and the mask of the decisions of a chunk played, for `onpolicy_ac`.
+
+    The controller's output at step t (from h_t, having seen o_t and a_t) is the probability
+    of the buttons a_{t+1}, executed at t + 1 for the reward r_{t+2} (`reward[t + 1]`). So the
+    decision of step t (t = 0 .. T - 2) is scored by R_t = r_{t+2} + γ ((1 - λ) V_{t+1} +
+    λ R_{t+1}), R_{T-1} = V_{T-1}, with V_t = `h_values[t]`; no bootstrap across an episode's end
+    (the episode that a_{t+1} plays in ends with r_{t+2} when o_{t+2} starts a new one:
+    `is_first[t + 2]`, `first_after` for t + 2 = T). A decision counts only if a_{t+1} was drawn
+    from it: not when o_{t+1} starts a new episode (its buttons are then released). Returns
+    (R `[T - 1, B]`, valid `[T - 1, B]`)."""
+    first = jnp.concatenate([is_first, first_after[None]], axis=0)  # o_0 .. o_T starts an episode
+    not_done = (~first[2:]).astype(jnp.float32)
+    rets = lambda_returns(reward[1:], h_values[1:], h_values[-1], gamma, lam, not_done)
+    return rets, (~first[1:-1]).astype(jnp.float32)
+
+
+class OnPolicyAC(ReplayLearner):
+    """See the module docstring. `model` is a controller variant that predicts reward."""
+
+    name = "onpolicy_ac"
+
+    @classmethod
+    def from_run(cls, cfg, model, game, env_params) -> "OnPolicyAC":
+        config = OnPolicyConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
+                                model_updates=cfg.model_updates, epochs=cfg.ppo_epochs, scope=cfg.scope)
+        return cls(model, game, config, cls.hparams(cfg, model), env_params)
+
+    def played_update(self, state: ReplayState, chunk: dict, carry0, explore, on):
+        """The controller and the critic on the chunk just played, from its real rewards.
+
+        The states are the model's own h_t along the chunk, teacher-forced on the executed buttons
+        from `carry0` (the controller's parameters do not change them). The critic V(h_t) learns
+        the λ-returns of the real rewards (`onpolicy_returns`); the controller is updated by PPO's
+        clipped surrogate on the probability it drew the executed buttons with, (1 - ε) ã + ε / 2,
+        the advantages normalised over the chunk, plus an entropy bonus on ã; `epochs` passes over
+        the chunk. With scope `controller` no gradient reaches the world model: it learns its frames
+        only, and the controller reads what it has learnt (h as recorded while acting). With scope
+        `all` the actor's and the critic's gradients reach the core and the encoder too, stepped
+        by the controller's optimiser beside the model's own updates on its frames."""
+        variant, hp = self.model, self.hp
+        everything = self.config.scope == "all"
+        recorded = Chunk(obs=chunk["obs"], next_obs=chunk["next_obs"], action=chunk["action"], reward=chunk["reward"],
+                         is_first=chunk["is_first"])
+
+        def features(params):
+            if not everything:
+                return jax.lax.stop_gradient(chunk["h"])  # [T, B, H]
+
+            def body(c, x):
+                c, _ = variant.step(params, c, x)
+                return c, variant.features(c)
+
+            return jax.lax.scan(body, carry0, step_inputs(recorded))[1]
+
+        executed = chunk["action"][1:]  # a_{t+1}, t < T - 1
+
+        def probs_of(params, h):
+            a = variant.heads(params, variant.fc(params, h[:-1]))["action"]
+            return (1.0 - explore) * a + explore * 0.5, a
+
+        h0 = jax.lax.stop_gradient(chunk["h"])
+        old_logp = jax.lax.stop_gradient(button_log_prob(probs_of(state.model.params, h0)[0], executed))
+        rets, valid = onpolicy_returns(critic_value(state.critic, h0), chunk["reward"], chunk["is_first"],
+                                      state.games.is_first, hp.gamma, hp.lam)
+        rets = jax.lax.stop_gradient(rets)
+        count = jnp.maximum(jnp.sum(valid), 1.0)
+        masked_mean = lambda x: jnp.sum(valid * x) / count  # noqa: E731
+
+        def losses(params, critic):
+            h = features(params)
+            values = critic_value(critic, h[:-1])
+            adv = jax.lax.stop_gradient(rets - values)
+            mean = masked_mean(adv)
+            adv = (adv - mean) / jnp.sqrt(masked_mean(jnp.square(adv - mean)) + 1e-8)
+            probs, a = probs_of(params, h)
+            ratio = jnp.exp(button_log_prob(probs, executed) - old_logp)
+            ent = button_entropy(a)
+            actor = -masked_mean(clipped_surrogate(ratio, adv, hp.clip_eps)) - hp.entropy * masked_mean(ent)
+            critic_loss = 0.5 * masked_mean(jnp.square(values - rets))
+            terms = {"imagined_return": masked_mean(rets), "critic_loss": critic_loss, "entropy": masked_mean(ent),
+                     "clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32))}
+            return hp.ascent * on * actor + critic_loss, (actor, terms)
+
+        def epoch(state, _):
+            return self.controller_step(state, losses, everything)
+
+        state, terms = jax.lax.scan(epoch, state, None, length=self.config.epochs)
+        return state, jax.tree.map(lambda x: x[-1], terms)
