@@ -8,11 +8,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 from pathlib import Path
 
 from cdrl.data.gymrec import OBS_MODES
+from cdrl.options import SECTIONS, section_of
+from cdrl.runs import compile_cache
 from cdrl.runs.config import RECIPES, RunConfig
 from cdrl.runs.sweep import GRID_FIELDS
 
@@ -25,6 +26,7 @@ _TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotatio
 # (ValueError, its DatasetError and DataChangedError), files (OSError), and runs and
 # checkpoints that cannot go on (RuntimeError: CheckpointError, DivergenceError, LockedError).
 USER_ERRORS = (ValueError, OSError, RuntimeError)
+SECTION_OF = section_of()
 ALLOW_DATA_CHANGE_HELP = ("with --resume: go on although the data set changed since the run began (the run's "
                           "data.json records the change and the step); without it such a resume is refused, "
                           "naming what changed")
@@ -38,19 +40,22 @@ def _add_config_options(parser: argparse.ArgumentParser, several: tuple[str, ...
     """One option per `RunConfig` field. Options not given stay absent from the namespace, so
     a resumed run changes only what the command line names. Fields in `several` take one or
     more values (a sweep's grid)."""
+    groups = {name: parser.add_argument_group(f"{name} options", cls.__doc__.splitlines()[0])
+              for name, cls in SECTIONS.items()}
     for f in dataclasses.fields(RunConfig):
         if f.name in skip:
             continue
+        group = groups[SECTION_OF[f.name]]
         grid = f.name in several
         if f.metadata.get("recipe"):
             default = "from --recipe: " + ", ".join(f"{name} {table[f.name]}" for name, table in RECIPES.items())
         else:
             default = f.default
         if f.type == "bool":
-            parser.add_argument("--" + f.name.replace("_", "-"), action=argparse.BooleanOptionalAction,
+            group.add_argument("--" + f.name.replace("_", "-"), action=argparse.BooleanOptionalAction,
                                 default=argparse.SUPPRESS, help=f"{f.metadata['help']} (default: {default})")
             continue
-        parser.add_argument(
+        group.add_argument(
             "--" + f.name.replace("_", "-"), *OLD_OPTION_NAMES.get(f.name, ()),
             type=_TYPES[f.type],
             nargs="+" if grid else None,
@@ -258,36 +263,11 @@ def _cmd_learners(args) -> int:
     return 0
 
 
-def compile_cache_dir() -> Path:
-    """Where compiled programs are kept: $CDRL_COMPILE_CACHE, else JAX's own
-    $JAX_COMPILATION_CACHE_DIR, else $XDG_CACHE_HOME/cdrl/xla (~/.cache/cdrl/xla)."""
-    for name in ("CDRL_COMPILE_CACHE", "JAX_COMPILATION_CACHE_DIR"):
-        if os.environ.get(name):
-            return Path(os.environ[name])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "cdrl" / "xla"
-
-
-def use_compile_cache(args) -> None:
-    """JAX's persistent compilation cache in `args.compile_cache` (unless
-    `--no-compile-cache`): a second run of the same configuration loads every program it
-    compiled the first time instead of compiling it again. Setting it touches no backend, so
-    `--distributed` can still join its processes afterwards."""
-    if args.no_compile_cache:
-        return
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", str(args.compile_cache))
-    # every program, however quick to compile (JAX's defaults skip those under a second)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs",
-                      float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", 0.0)))
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cdrl", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--compile-cache", metavar="DIR", type=Path, default=compile_cache_dir(),
+    common.add_argument("--compile-cache", metavar="DIR", type=Path, default=compile_cache.cache_dir(),
                         help="keep compiled programs in DIR, so that a second run of the same configuration "
                              "compiles nothing (default: $CDRL_COMPILE_CACHE, else $JAX_COMPILATION_CACHE_DIR, "
                              "else ~/.cache/cdrl/xla; now %(default)s)")
@@ -405,7 +385,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"cdrl: {exc}", file=sys.stderr)
             return 2
     args = build_parser().parse_args(argv)
-    use_compile_cache(args)
+    if not args.no_compile_cache:
+        compile_cache.use(args.compile_cache)
     return args.func(args)
 
 

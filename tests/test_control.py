@@ -267,7 +267,7 @@ def _left_bonus_learner(name: str):
     configs = {"one_step_q": rb.ReplayConfig(**shape), "onpolicy_ac": OnPolicyConfig(**shape)}
     cfg = configs.get(cls.name, ImaginationConfig(**shape, horizon=5))
     hp = rb.ReplayHParams.create(HParams.create(v, opt=OptHParams.create(lr=0.1, momentum=0.9)), warmup_steps=5,
-                                 ctrl_opt=OptHParams.create("adam", lr=1e-3))
+                                 ctrl_opt=OptHParams.create("adam", lr=1e-3), ascent=1.0, gamma=0.95, entropy=3e-3)
     learner = cls(v, g, cfg, hp, params)
     return learner, learner.init(jax.random.PRNGKey(0))
 

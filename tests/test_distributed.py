@@ -21,6 +21,7 @@ import pytest
 
 from cdrl.cli import main as cli_main
 from cdrl.models import make_variant
+from cdrl.options import upgrade
 from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.rundir import RunDir
 from cdrl.training.step import init_state
@@ -136,6 +137,7 @@ assert jax.device_count() == 2, jax.devices()
 from cdrl.data.stream import ChunkStream
 from cdrl.data.synthetic import synthetic_episodes
 from cdrl.models import make_variant
+from cdrl.options import upgrade
 from cdrl.models.arch import TINY
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, sweep_run
@@ -291,7 +293,7 @@ def test_two_process_data_parallel_run_equals_one_device_and_resumes_exactly(tmp
 
     np.testing.assert_allclose(_losses(straight), _losses(one), rtol=1e-5)
     _same_checkpoints(straight, one, rtol=1e-5)
-    assert json.loads((straight / "config.json").read_text())["devices"] == 0  # every device of every process
+    assert upgrade(json.loads((straight / "config.json").read_text()))["devices"] == 0  # every device of every process
     assert max(abs(x - y) for x, y in zip(_losses(killed), _losses(straight), strict=True)) <= 1e-6
     _same_checkpoints(killed, straight, rtol=1e-6)
     assert [r["step"] for r in _records(killed / "eval.jsonl")] == [r["step"] for r in _records(straight / "eval.jsonl")]

@@ -877,8 +877,9 @@ def test_only_asyncio_reports_of_unawaited_reads_are_dropped_and_only_after_a_fa
 
 
 def test_the_data_set_must_match_the_presets_max_filter(tmp_path, capsys):
-    """Game data shrunk without a max filter is refused by preset small-max (64 x 64 after a 5 x 5
-    filter) before anything is written, the message naming both filters and the fix."""
+    """Game data shrunk without a max filter is refused by a run with a 5 x 5 one (here by the
+    old preset name small-max) before anything is written, the message naming both filters and
+    the fix."""
     from cdrl.data.collect import collect
 
     data = tmp_path / "data"
@@ -887,6 +888,6 @@ def test_the_data_set_must_match_the_presets_max_filter(tmp_path, capsys):
     assert cli_main(["train", "--run-dir", str(run), "--data", str(data), "--preset", "small-max",
                      "--steps", "1"]) == 2
     err = capsys.readouterr().err
-    assert (f"data set {data} was shrunk after a max filter of side 1; preset 'small-max' sees the game after one "
-            "of side 5 (collect it with --max-filter 5" in err)
+    assert (f"data set {data} was shrunk after a max filter of side 1; this run sees the game after one "
+            "of side 5 (--max-filter) (collect it with --max-filter 5" in err)
     assert not (run / "config.json").exists()

@@ -14,6 +14,7 @@ from cdrl.cli import main as cli_main
 from cdrl.data import gymrec
 from cdrl.data.gymrec import action_codec, make_env, parse_env_kwargs
 from cdrl.data.store import EpisodeDataset, load_episode
+from cdrl.options import upgrade
 from envs.preprocess import preprocess
 
 TRAIN = ["--preset", "tiny", "--unroll", "4", "--batch", "2", "--steps", "3", "--eval-episodes", "1",
@@ -81,7 +82,7 @@ def test_collect_cartpole_from_its_rendered_frames_and_train_on_it(tmp_path, cap
         capsys.readouterr()
         assert cli_main(["train", "--run-dir", str(run), "--data", str(out), "--variant", variant, *TRAIN]) == 0, \
             capsys.readouterr().err
-        assert json.loads((run / "config.json").read_text())["action_dim"] == 2
+        assert upgrade(json.loads((run / "config.json").read_text()))["action_dim"] == 2
         assert [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()] == [0, 1, 2]
     assert cli_main(["eval", str(tmp_path / "main_action")]) == 0  # its checkpoint restores with the 2-action encoder
 

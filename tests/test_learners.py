@@ -111,7 +111,7 @@ def test_a_registered_learner_trains_checkpoints_and_resumes_exactly(button_bias
     assert len(straight) == 6 and np.all(np.isfinite(straight))
     np.testing.assert_array_equal(resumed, straight)
     config = json.loads((tmp_path / "stopped" / "config.json").read_text())
-    assert config["learner"] == "button_bias"
+    assert config["control"]["learner"] == "button_bias"
     evals = [json.loads(line) for line in (tmp_path / "straight" / "eval.jsonl").read_text().splitlines()]
     assert {"button_bias", "never_accelerate"} <= set(evals[-1]["policies"])
 

@@ -15,7 +15,7 @@ pytestmark = pytest.mark.default_opt  # compiled as users run it (tests/conftest
 def test_main_beats_copy_last_frame_on_the_game(tmp_path):
     cfg = RunConfig(variant="main", preset="small", episodes=60, episode_steps=200, seed=0, steps=STEPS,
                     eval_every=STEPS // 4, eval_episodes=6, checkpoint_every=STEPS)
-    assert cfg.recipe == DEFAULT_RECIPE == "fast"
+    assert cfg.recipe == DEFAULT_RECIPE == "tuned"
     summary = train_run(cfg, tmp_path / "run", progress=False)
     evals = [json.loads(line) for line in (tmp_path / "run" / "eval.jsonl").read_text().splitlines()]
     ratios = [e["excess_ratio"] for e in evals]

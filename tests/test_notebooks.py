@@ -11,6 +11,7 @@ The kernel inherits the test session's XLA compilation cache (tests/conftest.py)
 program that another test or notebook compiled is not compiled again.
 """
 import json
+from cdrl.options import upgrade
 import math
 import re
 import statistics
@@ -70,7 +71,7 @@ def _check_figures(runs, names, since):
 def _check_recipe(config, what):
     """A config.json of the default recipe: its resolved values, and the encoder's input
     standardised by statistics measured from the data."""
-    assert config["recipe"] == "fast", what
+    assert config["recipe"] == "tuned", what
     assert (config["optimizer"], config["lr"], config["momentum"], config["obs_norm"]) == ("sgd", 2.0, 0.9, "data"), what
     assert (config["batch"], config["unroll"], config["fc_init_gain"]) == (4, 8, 5.0), what
     assert 0 < _finite(config["obs_mean"], what) < 1 and 0 < _finite(config["obs_std"], what) < 1, what
@@ -83,7 +84,7 @@ def _check_quickstart(runs, since):
     records, evals = {}, {}
     for name in ("main", "main-straight"):
         run = runs / name
-        config = json.loads((run / "config.json").read_text())
+        config = upgrade(json.loads((run / "config.json").read_text()))
         assert (config["steps"], config["eval_every"]) == (6, 3), name
         _check_recipe(config, name)
         records[name] = _jsonl(run / "metrics.jsonl")
@@ -133,7 +134,7 @@ def _check_variants(runs, since):
                 assert r["test_code_pred_mse"] is None, what
             run = NOTEBOOKS.parent / r["path"]
             assert (run / "metrics.jsonl").is_file(), what
-            _check_recipe(json.loads((run / "config.json").read_text()), what)
+            _check_recipe(upgrade(json.loads((run / "config.json").read_text())), what)
             evals = _jsonl(run / "eval.jsonl")
             assert [e["step"] for e in evals] == [2, 4], what
             for e in evals:
@@ -195,7 +196,7 @@ def _check_controller(runs, since):
         assert 1 <= length <= max_steps and abs(_finite(seed["return"], f"{name} return")) <= 5.0 * length, (name, seed)
         assert r["return"]["per_seed"] == [seed["return"]], name
         assert [frames for frames, _ in seed["curve"]] == [r["frames"]], (name, seed["curve"])
-        config = json.loads((runs / name / "seed0" / "config.json").read_text())
+        config = upgrade(json.loads((runs / name / "seed0" / "config.json").read_text()))
         assert {k: config[k] for k in r["options"] if k in config} == {k: v for k, v in r["options"].items()
                                                                        if k in config}, (name, config)
         if name != "ppo":

@@ -17,6 +17,7 @@ from cdrl.runs.train import train_run
 from cdrl.training.loop import DivergenceError, fit
 from cdrl.training.optim import OPTIMIZERS, HParams, OptHParams
 from cdrl.training.step import chunk_loss, init_state, train_step_fn
+from cdrl.options import upgrade
 
 STEP = jax.jit(train_step_fn, static_argnums=0)
 
@@ -116,7 +117,7 @@ def test_resume_is_exact_for_adamw_with_warmup_cosine_and_clipping(tmp_path):
     train_run(RunConfig(steps=3, **opts), tmp_path / "half", progress=False)
     train_run(None, tmp_path / "half", resume=True, overrides={"steps": 6}, progress=False)
     assert _losses(tmp_path / "half") == _losses(tmp_path / "full")
-    saved = json.loads((tmp_path / "half" / "config.json").read_text())
+    saved = upgrade(json.loads((tmp_path / "half" / "config.json").read_text()))
     assert saved["optimizer"] == "adamw" and saved["lr_decay_steps"] == 6
 
 
@@ -127,7 +128,7 @@ def test_recipes_fill_only_what_the_run_does_not_set():
     mixed = RunConfig(recipe="thesis", lr=0.3, batch=8)
     assert (mixed.lr, mixed.batch, mixed.momentum) == (0.3, 8, 0.9)
     fast = RunConfig()
-    assert fast.recipe == "fast" and all(getattr(fast, k) == v for k, v in RECIPES["fast"].items())
+    assert fast.recipe == "tuned" and all(getattr(fast, k) == v for k, v in RECIPES["tuned"].items())
     online = RunConfig(variant="final_proposal")
     assert (online.lr, online.batch, online.unroll, online.fc_init_gain, online.obs_norm) == (0.1, 8, 16, 1.0, "data")
     # A config.json from before recipes (no 'recipe', none of the new options) reads as the thesis's.

@@ -122,8 +122,8 @@ def test_metrics_file_parses_and_loss_falls(tmp_path):
     assert sum(losses[-10:]) / 10 < 0.8 * sum(losses[:5]) / 5
     assert set(records[0]["ratios"]) >= {"obs_enc/conv0/kernel", "lstm/w_recurrent", "fc/dense0/bias"}
     assert all(r["fps"] > 0 for r in records)
-    config = json.loads((run / "config.json").read_text())
-    assert config["lr"] == 0.3 and config["variant"] == "main"
+    config = json.loads((run / "config.json").read_text())  # nested by section
+    assert config["optim"]["lr"] == 0.3 and config["model"]["variant"] == "main"
     evals = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines()]
     assert evals[-1]["step"] == 60 and evals[-1]["bce"] > 0 and evals[-1]["copy_bce"] > 0
 

@@ -9,6 +9,7 @@ import pytest
 from tensorboardX.proto import event_pb2
 
 from cdrl.cli import main as cli_main
+from cdrl.options import upgrade
 
 RUN = ["--data", "synthetic", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30", "--unroll", "8",
        "--batch", "2", "--lr", "0.3", "--eval-episodes", "1", "--checkpoint-every", "6", "--eval-every", "6"]
@@ -84,4 +85,4 @@ def test_tensorboard_can_be_switched_off(tmp_path):
     run = tmp_path / "run"
     assert cli_main(["train", "--run-dir", str(run), *RUN, "--steps", "2", "--no-tensorboard"]) == 0
     assert (run / "metrics.jsonl").exists() and not (run / "tb").exists()
-    assert json.loads((run / "config.json").read_text())["tensorboard"] is False
+    assert upgrade(json.loads((run / "config.json").read_text()))["tensorboard"] is False

@@ -8,13 +8,14 @@ import jax
 
 from cdrl.learners.replay_base import ReplayConfig, draw_buttons
 from cdrl.models.base import Variant
+from cdrl.options import CONTROL
 
 
 @dataclasses.dataclass(frozen=True)
 class ImaginationConfig(ReplayConfig):
     """`ReplayConfig` and the imagined steps of each controller update."""
 
-    horizon: int = 15
+    horizon: int = CONTROL.horizon
 
 
 def imagine(variant: Variant, horizon: int, params, carry, action, frame, key, sample: bool):

@@ -15,6 +15,7 @@ from cdrl.data.stream import Chunk
 from cdrl.learners.ppo import clipped_surrogate
 from cdrl.learners.replay_base import (ReplayConfig, ReplayLearner, ReplayState, button_entropy, button_log_prob,
                                        critic_value, lambda_returns)
+from cdrl.options import CONTROL
 from cdrl.training.step import step_inputs
 
 SCOPES = ("controller", "all")
@@ -25,8 +26,8 @@ class OnPolicyConfig(ReplayConfig):
     """`ReplayConfig`, the passes of the clipped update over each chunk played, and what its
     gradient changes: the controller, or `all` (the core and the encoder too)."""
 
-    epochs: int = 4
-    scope: str = "controller"
+    epochs: int = CONTROL.ppo_epochs
+    scope: str = CONTROL.scope
 
     def __post_init__(self):
         super().__post_init__()

@@ -51,6 +51,7 @@ import jax.numpy as jnp
 from cdrl.data.frames import model_obs
 from cdrl.models import nets
 from cdrl.models.arch import ArchConfig
+from cdrl.options import AGENT_RECIPE, CONTROL, OptimOptions
 from cdrl.learners.api import Learner
 from cdrl.learners.game_batch import Games, Observation, observe, reset_games, step_games
 from cdrl.training.optim import OptHParams, init_opt_state
@@ -66,10 +67,10 @@ class PPOConfig:
     """Static shape of PPO: B games, T steps per update, `epochs` x `minibatches` optimiser
     updates per rollout, `hidden` units in the torso."""
 
-    num_envs: int = 16
-    unroll: int = 32
-    epochs: int = 4
-    minibatches: int = 4
+    num_envs: int = AGENT_RECIPE["batch"]
+    unroll: int = AGENT_RECIPE["unroll"]
+    epochs: int = CONTROL.ppo_epochs
+    minibatches: int = CONTROL.ppo_minibatches
     hidden: int = 256
 
     def __post_init__(self):
@@ -104,10 +105,13 @@ class PPOHParams:
     diverge_threshold: jax.Array
 
     @classmethod
-    def create(cls, lr=2.5e-4, gamma=0.99, gae_lambda=0.95, clip_eps=0.2, value_coef=0.5, entropy_coef=0.01,
-               diverge_threshold=1e3, grad_clip=0.5, opt: OptHParams | None = None) -> "PPOHParams":
-        """`opt`: the optimiser's numbers (default: Adam with `lr`, betas 0.9 / 0.999 and global
-        gradient-norm clipping at `grad_clip`, which it replaces)."""
+    def create(cls, lr=AGENT_RECIPE["lr"], gamma=CONTROL.gamma, gae_lambda=CONTROL.gae_lambda,
+               clip_eps=CONTROL.clip_eps, value_coef=CONTROL.value_coef, entropy_coef=CONTROL.entropy_coef,
+               diverge_threshold=OptimOptions.diverge_threshold, grad_clip=AGENT_RECIPE["grad_clip"],
+               opt: OptHParams | None = None) -> "PPOHParams":
+        """The defaults are a run's (`cdrl.options`). `opt`: the optimiser's numbers (default:
+        Adam with `lr`, betas 0.9 / 0.999 and global gradient-norm clipping at `grad_clip`,
+        which it replaces)."""
         positive, non_negative, unit = (0.0, False, None), (0.0, True, None), (0.0, True, 1.0)
         for name, v, (lo, lo_ok, hi) in [
                 ("lr", lr, positive), ("gamma", gamma, unit), ("gae_lambda", gae_lambda, unit),

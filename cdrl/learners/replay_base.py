@@ -39,6 +39,7 @@ from cdrl.evaluation.play import controller_policy
 from cdrl.learners.api import Learner
 from cdrl.learners.game_batch import Games, Observation, copy_scores, observe, reset_games, step_games
 from cdrl.models import nets
+from cdrl.options import CONTROL, DEFAULT_RECIPE, FAMILY_OVERRIDES
 from cdrl.models.base import StepInput, Variant
 from cdrl.training.optim import HParams, OptHParams, init_opt_state
 from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
@@ -51,12 +52,12 @@ CRITIC_HIDDEN = 128
 @dataclasses.dataclass(frozen=True)
 class ReplayConfig:
     """Static shape: B games x T steps per chunk, `replay` chunks kept, `model_updates` per
-    chunk."""
+    chunk (defaults: a run's, `cdrl.options`)."""
 
-    num_envs: int = 8
-    unroll: int = 16
-    replay: int = 64
-    model_updates: int = 4
+    num_envs: int = FAMILY_OVERRIDES["replay"][DEFAULT_RECIPE]["batch"]
+    unroll: int = FAMILY_OVERRIDES["replay"][DEFAULT_RECIPE]["unroll"]
+    replay: int = CONTROL.replay
+    model_updates: int = CONTROL.model_updates
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -80,11 +81,14 @@ class ReplayHParams:
     clip_eps: jax.Array  # `onpolicy_ac`: clip range of the probability ratio
 
     @classmethod
-    def create(cls, model: HParams, ctrl_opt: OptHParams | None = None, ascent=1.0, explore=0.3,
-               explore_decay=0.999, warmup_steps=100, gamma=0.95, lam=0.95, entropy=3e-3,
-               clip_eps=0.2) -> "ReplayHParams":
+    def create(cls, model: HParams, ctrl_opt: OptHParams | None = None, ascent=CONTROL.ascent,
+               explore=CONTROL.noise_std, explore_decay=CONTROL.noise_decay, warmup_steps=CONTROL.warmup_steps,
+               gamma=CONTROL.gamma, lam=CONTROL.gae_lambda, entropy=CONTROL.entropy_coef,
+               clip_eps=CONTROL.clip_eps) -> "ReplayHParams":
+        """The defaults are a run's (`cdrl.options`); `ctrl_opt` is Adam at `ctrl_lr` with the
+        gradient norm clipped at 100 unless given."""
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-        ctrl_opt = ctrl_opt if ctrl_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
+        ctrl_opt = ctrl_opt if ctrl_opt is not None else OptHParams.create("adam", lr=CONTROL.ctrl_lr, grad_clip=100.0)
         return cls(model, ctrl_opt, f32(ascent), f32(explore), f32(explore_decay), f32(warmup_steps), f32(gamma),
                    f32(lam), f32(entropy), f32(clip_eps))
 

@@ -30,6 +30,7 @@ from cdrl.evaluation.play import controller_policy
 from cdrl.learners.api import Learner
 from cdrl.learners.game_batch import Games, Observation, copy_scores, observe, reset_games, step_games
 from cdrl.models.base import StepInput, Variant, bce_with_logits
+from cdrl.options import CONTROL, DEFAULT_RECIPE, FAMILY_OVERRIDES, RECIPES, OptimOptions
 from cdrl.training.optim import OptHParams, init_opt_state
 from cdrl.training.step import TrainState, guarded_update, run_once
 
@@ -38,10 +39,10 @@ SCOPES = ("controller", "all")
 
 @dataclasses.dataclass(frozen=True)
 class AscentConfig:
-    """Static shape: B games, T steps per chunk."""
+    """Static shape: B games, T steps per chunk (defaults: a run's, `cdrl.options`)."""
 
-    num_envs: int = 8
-    unroll: int = 32
+    num_envs: int = FAMILY_OVERRIDES["ascent"][DEFAULT_RECIPE]["batch"]
+    unroll: int = FAMILY_OVERRIDES["ascent"][DEFAULT_RECIPE]["unroll"]
 
     def __post_init__(self):
         if self.num_envs < 1 or self.unroll < 1:
@@ -62,11 +63,13 @@ class AscentHParams:
     ascent_all: jax.Array  # 1: the ascent may change every parameter ("all"); 0: the controller only
 
     @classmethod
-    def create(cls, lr=0.1, momentum=0.9, ascent=0.1, reward_weight=0.1, noise_std=0.3, noise_decay=0.999,
-               warmup_steps=100, diverge_threshold=1e3, scope="controller",
+    def create(cls, lr=FAMILY_OVERRIDES["ascent"][DEFAULT_RECIPE]["lr"], momentum=RECIPES[DEFAULT_RECIPE]["momentum"],
+               ascent=CONTROL.ascent, reward_weight=RECIPES[DEFAULT_RECIPE]["reward_weight"],
+               noise_std=CONTROL.noise_std, noise_decay=CONTROL.noise_decay, warmup_steps=CONTROL.warmup_steps,
+               diverge_threshold=OptimOptions.diverge_threshold, scope=CONTROL.scope,
                opt: OptHParams | None = None) -> "AscentHParams":
-        """`opt`: the optimiser's numbers (default: SGD with `lr` and `momentum`, which it
-        replaces)."""
+        """The defaults are a run's (`cdrl.options`). `opt`: the optimiser's numbers (default:
+        SGD with `lr` and `momentum`, which it replaces)."""
         if scope not in SCOPES:
             raise ValueError(f"unknown ascent scope {scope!r}; choose one of {SCOPES}")
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731

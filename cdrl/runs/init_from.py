@@ -60,7 +60,7 @@ def source_of(cfg: RunConfig) -> tuple[RunConfig, Any] | None:
         src, params, _ = restore_params(RunDir(cfg.init_from))
     except (FileNotFoundError, ValueError) as exc:
         raise ValueError(f"{where}: {exc}") from None
-    for name in ("variant", "preset"):
+    for name in ("variant", "preset", "max_filter"):
         if getattr(src, name) != getattr(cfg, name):
             raise ValueError(f"{where}: its run trains {name} {getattr(src, name)!r}, this one {getattr(cfg, name)!r}; "
                              "a world model starts only from one of the same variant and preset")

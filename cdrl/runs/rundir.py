@@ -29,6 +29,7 @@ from cdrl.data import fingerprint
 from cdrl.data.atomic import atomic_write_text  # noqa: F401  (re-exported: how a run's files are written)
 from cdrl.data.lock import DirLock
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
+from cdrl.options import upgrade
 from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
 
 
@@ -76,7 +77,7 @@ def _check_compatible(cfg: RunConfig):
     defaults = dataclasses.asdict(saved_config({}))
 
     def check(meta):
-        saved = {**defaults, **meta.get("config", {})}
+        saved = {**defaults, **upgrade(meta.get("config", {}))}
         diffs = [
             f"{k}: checkpoint has {saved[k]!r}, run has {v!r}"
             for k, v in dataclasses.asdict(cfg).items()
@@ -144,7 +145,7 @@ class RunDir:
     def write_config(self, cfg: RunConfig) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
         try:
-            text = json.dumps(dataclasses.asdict(cfg), indent=2, allow_nan=False)
+            text = json.dumps(cfg.to_dict(), indent=2, allow_nan=False)
         except ValueError:
             raise ValueError(f"the config of {self.path} holds a number that is not finite; config.json holds "
                              "JSON numbers only") from None

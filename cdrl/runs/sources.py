@@ -117,8 +117,9 @@ def verify_data(cfg: RunConfig, train, test) -> None:
         if collected.get("source") == "slither" and int(collected.get("max_filter", 1)) != cfg.arch.max_filter:
             raise store.DatasetError(
                 f"data set {split.path} was shrunk after a max filter of side {collected.get('max_filter', 1)}; "
-                f"preset {cfg.preset!r} sees the game after one of side {cfg.arch.max_filter} "
-                f"(collect it with --max-filter {cfg.arch.max_filter}, or pick the preset that matches it)")
+                f"this run sees the game after one of side {cfg.arch.max_filter} (--max-filter) "
+                f"(collect it with --max-filter {cfg.arch.max_filter}, or train with the max filter it was "
+                "collected with)")
         split.verify()
 
 

@@ -73,6 +73,7 @@ import jax
 import numpy as np
 import scipy.stats
 
+from cdrl import learners
 from cdrl.evaluation.play import EVAL_SEED, model_fit
 from cdrl.evaluation.stats import across
 from cdrl.models import make_variant
@@ -190,7 +191,7 @@ def seed_result(run_dir: Path, budget: Budget) -> dict:
     run = RunDir(run_dir)
     cfg = run.read_config()
     evals = [r for r in run.evals.read() if r.get("split") == "play"]
-    name = "ppo" if cfg.kind == "ppo" else "controller"
+    name = learners.learner_class(cfg.learner).row  # the learned policy's row in the table
     final = evals[-1]["policies"]
     frames = cfg.batch * cfg.unroll
     out = {"return": final[name]["mean_return"], "ci95_over_games": final[name]["ci95"],

@@ -46,6 +46,7 @@ import numpy as np
 from cdrl.data.stream import ChunkStream
 from cdrl.evaluation.metrics import evaluate
 from cdrl.models import make_variant
+from cdrl.runs import compile_cache
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sources import load_episodes, with_obs_norm
 from cdrl.training.step import init_state, train_step
@@ -141,13 +142,6 @@ class _Torch:
 
     def params(self):
         return jax.tree.map(np.asarray, self.tr.params_as_cdrl(self.model))
-
-
-def _use_compile_cache(directory) -> None:
-    """JAX's persistent compilation cache in `directory`, every program kept (as the CLI's)."""
-    jax.config.update("jax_compilation_cache_dir", str(directory))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 def run_warm_row(name: str, args, cap: float) -> dict:
@@ -252,7 +246,7 @@ def main(argv=None) -> int:
         caps = {name: 5.0 for name in args.rows}
         args.episodes, args.episode_steps, args.eval_every = 8, 40, 2
     if args.compile_cache:
-        _use_compile_cache(args.compile_cache)
+        compile_cache.use(args.compile_cache)
     if args.prime:
         for name in args.rows:
             prime_row(name, args)
