@@ -100,9 +100,6 @@ REPO = ROOT.parent
 # benchmarks/ measures speed and scaling only; the research studies live in experiments/.
 BENCHMARK_SCRIPTS = {"common.py", "env_throughput.py", "layer_timings.py", "malloc_throughput.py", "online_throughput.py",
                      "op_profile.py", "scaling.py", "sweep_throughput.py", "train_throughput.py"}
-# Basenames that two modules still share, each to be renamed by issue 45's item 4. Remove a name
-# once it is unique; add none.
-SHARED_BASENAMES_TO_RENAME = {"frames.py", "online.py", "writer.py"}
 
 
 def repo_modules() -> list[Path]:
@@ -132,8 +129,7 @@ def test_no_two_modules_share_a_basename():
         if p.name != "__init__.py":
             by_name.setdefault(p.name, []).append(str(p.relative_to(REPO)))
     shared = {name: paths for name, paths in by_name.items() if len(paths) > 1}
-    new = {name: paths for name, paths in shared.items() if name not in SHARED_BASENAMES_TO_RENAME}
-    assert not new, f"modules that share a basename: {new}"
+    assert not shared, f"modules that share a basename: {shared}"
 
 
 def test_the_library_imports_no_study_benchmark_or_reference():
