@@ -211,22 +211,3 @@ DEFAULT_RECIPE = "tuned"
 def section_of() -> dict[str, str]:
     """Option name -> the name of its section."""
     return {f.name: name for name, cls in SECTIONS.items() for f in dataclasses.fields(cls)}
-
-
-def upgrade(saved: dict) -> dict:
-    """A config as `config.json` or a checkpoint holds it, nested by section or flat (older
-    versions), as flat options under today's names: `controller` is `learner`, variant ppo is
-    learner ppo, recipe fast is tuned, preset small-max is small with max_filter 5."""
-    flat = dict(saved)
-    for name in SECTIONS:
-        if isinstance(flat.get(name), dict):
-            flat.update(flat.pop(name))
-    if "controller" in flat:
-        flat.setdefault("learner", flat.pop("controller"))
-    if flat.get("variant") == "ppo":
-        flat.update(variant="main", learner="ppo")
-    if flat.get("recipe") in RECIPE_ALIASES:
-        flat["recipe"] = RECIPE_ALIASES[flat["recipe"]]
-    if flat.get("preset") in PRESET_ALIASES:
-        flat["preset"], flat["max_filter"] = PRESET_ALIASES[flat["preset"]]
-    return flat

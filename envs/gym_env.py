@@ -27,12 +27,13 @@ from gymnasium.vector.utils import batch_space
 from envs import fastrng
 from envs import render as _render
 from envs.preprocess import DEFAULT_CROP, DEFAULT_OUT_SIZE, preprocess
+from envs.flow_view import make_game
 from envs.slither import Slither, SlitherParams, canonical_params
 
 
 @functools.lru_cache(maxsize=16)
 def _game(game_items: tuple[tuple[str, Any], ...]) -> Slither:
-    return Slither(**dict(game_items))
+    return make_game(**dict(game_items))
 
 
 def game_for(**game_kwargs: Any) -> Slither:

@@ -57,7 +57,6 @@ from flax import struct
 
 from envs import fastrng
 from envs import render as _render
-from envs import symmetry
 from envs._xla import materialise
 from envs.render import RenderSpec, wrap_delta, wrap_position
 
@@ -175,10 +174,13 @@ def level_params(level: str, params: "SlitherParams | None" = None) -> "SlitherP
 
 
 def level_game(level: str) -> "Slither":
-    """The game of level ``level``: :class:`Slither` with the level's static drawing options."""
+    """The game of level ``level``: :class:`Slither` with the level's static drawing options,
+    seen by the level's camera (`envs.flow_view.make_game`)."""
+    from envs.flow_view import make_game  # the wrapper module imports this one
+
     if level not in LEVELS:
         raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)}")
-    return Slither(**LEVEL_GAMES.get(level, {}))
+    return make_game(**LEVEL_GAMES.get(level, {}))
 
 
 @struct.dataclass
@@ -209,17 +211,6 @@ class SlitherState:
     pellet_dy: jnp.ndarray
     time: jnp.ndarray
     terminated: jnp.ndarray
-
-
-@struct.dataclass
-class FlowViewState(SlitherState):
-    """The state of a game seen by the ``flow`` camera: the game's, its north-up observation
-    shrunk to ``envs.symmetry.FLOW_SIZE`` (``flow_frame``) and the heading the view is turned by
-    (``view_heading`` [2], a unit vector, x right, y down), read off that frame and the one before
-    (:func:`envs.symmetry.follow_heading`); up the screen, ``(0, -1)``, at reset."""
-
-    flow_frame: jnp.ndarray
-    view_heading: jnp.ndarray
 
 
 def canonical_params(params: SlitherParams | None = None) -> SlitherParams:
@@ -290,13 +281,9 @@ def straight_body(head_x, head_y, heading, spacing, num_segments, arena_size):
     return wrap_position(x, arena_size), wrap_position(y, arena_size)
 
 
-# The game's cameras: the renderer's, and the north-up view turned by the heading the pixels show.
-CAMERAS = _render.CAMERAS + ("flow",)
-
-
-def _fields(state) -> dict:
-    """A game state's fields by name (not recursing into them, as `dataclasses.asdict` would)."""
-    return {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
+# The game's cameras (the renderer's). The flow view is an observation wrapper around the north-up
+# game: `envs.flow_view`.
+CAMERAS = _render.CAMERAS
 
 
 class Slither:
@@ -312,11 +299,9 @@ class Slither:
       segment_radius, pellet_radius: drawing radii in raw pixels.
       max_drawn_segments: snake segments the fast observation draws at most (see
         :class:`envs.render.RenderSpec`).
-      camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game),
-        ``"heading"`` (the view turns with the player, its heading up the screen) or ``"flow"``
-        (the heading camera's view, turned by the heading the optical flow between the last two
-        north-up frames shows instead of the true one: :class:`FlowViewState`; the view a
-        pixel-only agent can make for itself of the thesis's game).
+      camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game) or
+        ``"heading"`` (the view turns with the player, its heading up the screen). The view a
+        pixel-only agent can make for itself is a wrapper: :class:`envs.flow_view.FlowView`.
     """
 
     def __init__(
@@ -355,11 +340,9 @@ class Slither:
             segment_radius=float(segment_radius),
             pellet_radius=float(pellet_radius),
             max_drawn_segments=int(max_drawn_segments),
-            camera="north" if camera == "flow" else str(camera),
+            camera=str(camera),
         )
         self.camera = str(camera)
-        # the flow camera draws its view as the heading camera does, turned by the heading it reads
-        self.view_spec = dataclasses.replace(self.spec, camera="heading") if camera == "flow" else self.spec
         self.grid = self.spec.grid
         self.pellet_margin = float(pellet_radius) + 1.0
 
@@ -458,10 +441,7 @@ class Slither:
             time=jnp.zeros((), jnp.int32),
             terminated=jnp.zeros((), bool),
         )
-        if self.camera != "flow":
-            return state
-        return FlowViewState(**_fields(state), flow_frame=symmetry.flow_frame(self._north_obs(state, params)),
-                             view_heading=jnp.asarray([0.0, -1.0], jnp.float32))
+        return state
 
     def active(self, state: SlitherState) -> jnp.ndarray:
         """[S, M] bool: which segments exist."""
@@ -618,32 +598,14 @@ class Slither:
             time=time,
             terminated=terminated,
         )
-        if self.camera == "flow":
-            frame = symmetry.flow_frame(self._north_obs(new_state, params))
-            new_state = FlowViewState(**_fields(new_state), flow_frame=frame,
-                                      view_heading=symmetry.follow_heading(state.flow_frame, frame, state.view_heading))
         reward = length[0] - state.length[0]
         truncated = (time >= params.max_steps) & ~terminated
         info = {"length": length[0], "opponents_died": jnp.sum(died)}
         return new_state, reward, terminated, truncated, info
 
     def get_obs(self, state: SlitherState, params: SlitherParams | None = None) -> jnp.ndarray:
-        """The pre-processed observation [150, 150] float32 in [0, 1] (fast path).  With the
-        ``flow`` camera, the view turned by the state's ``view_heading``, which the pixels of
-        its last two north-up frames gave (the player's true heading is not read)."""
+        """The pre-processed observation [150, 150] float32 in [0, 1] (fast path)."""
         params = self.default_params if params is None else params
-        state = self._as_viewed(state)
-        return _render.render_obs(self.view_spec, state, self.active(state), params.background_contrast)
-
-    def _as_viewed(self, state: SlitherState) -> SlitherState:
-        """What the view is drawn from: with the ``flow`` camera, the player's heading replaced by
-        the one read off the pixels (the only field of the state the drawing turns by)."""
-        if self.camera != "flow":
-            return state
-        angle = jnp.arctan2(state.view_heading[1], state.view_heading[0])
-        return state.replace(heading=state.heading.at[0].set(angle))
-
-    def _north_obs(self, state: SlitherState, params: SlitherParams) -> jnp.ndarray:
         return _render.render_obs(self.spec, state, self.active(state), params.background_contrast)
 
     def render_raw(self, state: SlitherState, params: SlitherParams | None = None) -> jnp.ndarray:
@@ -654,7 +616,7 @@ class Slither:
     def in_view(self, state: SlitherState) -> jnp.ndarray:
         """[S] bool: some segment centre of snake s lies inside the observed crop."""
         half = _render.CROP_SIZE / 2
-        dx, dy = _render.view_offsets(self.view_spec, _render.view_axes(self.view_spec, self._as_viewed(state)),
+        dx, dy = _render.view_offsets(self.spec, _render.view_axes(self.spec, state),
                                       wrap_delta(state.x - state.x[0, 0], self.arena_size),
                                       wrap_delta(state.y - state.y[0, 0], self.arena_size))
         inside = (jnp.abs(dx) < half) & (jnp.abs(dy) < half) & self.active(state)

@@ -21,7 +21,7 @@ import pytest
 
 from cdrl.cli import main as cli_main
 from cdrl.models import make_variant
-from cdrl.options import upgrade
+from cdrl.runs.config import upgrade
 from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.rundir import RunDir
 from cdrl.training.step import init_state
@@ -137,7 +137,6 @@ assert jax.device_count() == 2, jax.devices()
 from cdrl.data.stream import ChunkStream
 from cdrl.data.synthetic import synthetic_episodes
 from cdrl.models import make_variant
-from cdrl.options import upgrade
 from cdrl.models.arch import TINY
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, sweep_run
@@ -311,4 +310,4 @@ def test_distributed_and_devices_refuse_bad_settings(tmp_path, capsys, monkeypat
     assert "devices=3, but only 1 cpu device(s) are available over 1 process(es)" in capsys.readouterr().err
     assert cli_main(["train", "--run-dir", str(tmp_path / "c"), "--variant", "final_proposal", "--preset", "tiny",
                      "--devices", "2"]) == 2
-    assert "devices=2: controller variants and ppo train online on one device" in capsys.readouterr().err
+    assert "devices=2: learners that play the game train on one device" in capsys.readouterr().err

@@ -14,7 +14,7 @@ from cdrl.cli import main as cli_main
 from cdrl.data import gymrec
 from cdrl.data.gymrec import action_codec, make_env, parse_env_kwargs
 from cdrl.data.store import EpisodeDataset, load_episode
-from cdrl.options import upgrade
+from cdrl.runs.config import upgrade
 from envs.preprocess import preprocess
 
 TRAIN = ["--preset", "tiny", "--unroll", "4", "--batch", "2", "--steps", "3", "--eval-episodes", "1",

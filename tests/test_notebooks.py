@@ -11,7 +11,7 @@ The kernel inherits the test session's XLA compilation cache (tests/conftest.py)
 program that another test or notebook compiled is not compiled again.
 """
 import json
-from cdrl.options import upgrade
+from cdrl.runs.config import upgrade
 import math
 import re
 import statistics
@@ -120,7 +120,7 @@ def _check_variants(runs, since):
     for variant, entry in results["variants"].items():
         rows = entry["per_seed"]
         assert [r["seed"] for r in rows] == [0, 1], variant
-        assert "--recipe fast" in entry["command"] and "--seed 0 1" in entry["command"], entry["command"]
+        assert "--recipe tuned" in entry["command"] and "--seed 0 1" in entry["command"], entry["command"]
         for r in rows:
             what = f"{variant} seed {r['seed']}"
             assert r["steps"] == 4 and r["diverged_at"] is None, what

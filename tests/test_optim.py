@@ -17,7 +17,7 @@ from cdrl.runs.train import train_run
 from cdrl.training.loop import DivergenceError, fit
 from cdrl.training.optim import OPTIMIZERS, HParams, OptHParams
 from cdrl.training.step import chunk_loss, init_state, train_step_fn
-from cdrl.options import upgrade
+from cdrl.runs.config import upgrade
 
 STEP = jax.jit(train_step_fn, static_argnums=0)
 

@@ -10,8 +10,8 @@ from cdrl.learners.ppo import PPOHParams
 from cdrl.learners.replay_base import ReplayHParams
 from cdrl.learners.thesis_ascent import AscentHParams
 from cdrl.models import TINY, make_variant
-from cdrl.options import SECTIONS, upgrade
-from cdrl.runs.config import RunConfig, saved_config
+from cdrl.options import SECTIONS
+from cdrl.runs.config import RunConfig, saved_config, upgrade
 from cdrl.runs.grid import GRID_FIELDS
 from cdrl.runs.train import train_run
 from cdrl.training.optim import HParams

@@ -13,6 +13,7 @@ import pytest
 from cdrl.data.frames import resize_obs
 from envs import symmetry
 from envs.render import wrap_delta, wrap_position
+from envs.flow_view import FlowView
 from envs.slither import Slither, SlitherState, level_params
 
 
@@ -189,12 +190,12 @@ def test_heading_from_flow_reads_the_heading_off_two_frames():
 
 
 def test_the_flow_camera_shows_the_heading_cameras_view_from_the_pixels():
-    """The `flow` camera plays the north-up game (the same states and rewards step for step) and
+    """The `flow` view (a wrapper) plays the north-up game (the same states and rewards step for step) and
     shows its first frame north-up, every later one turned by the heading the pixels show: the
     heading camera's frame of the same state but for that reading's error (64 x 64, inside the
     disc both hold), where the north-up frame is far from it."""
     params = level_params("thesis")
-    flow, north, heading_up = Slither(camera="flow"), Slither(), Slither(camera="heading")
+    flow, north, heading_up = FlowView(Slither()), Slither(), Slither(camera="heading")
     plain = [f.name for f in dataclasses.fields(SlitherState)]
 
     def one(key):

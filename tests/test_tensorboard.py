@@ -9,7 +9,7 @@ import pytest
 from tensorboardX.proto import event_pb2
 
 from cdrl.cli import main as cli_main
-from cdrl.options import upgrade
+from cdrl.runs.config import upgrade
 
 RUN = ["--data", "synthetic", "--preset", "tiny", "--episodes", "6", "--episode-steps", "30", "--unroll", "8",
        "--batch", "2", "--lr", "0.3", "--eval-episodes", "1", "--checkpoint-every", "6", "--eval-every", "6"]

@@ -29,9 +29,9 @@ def _rollout_fn(game_items: tuple, policy_name: str, chunk_steps: int, obs_size:
     from cdrl.data.frames import resize_obs
     from envs import fastrng
     from envs.policies import get_policy
-    from envs.slither import Slither
+    from envs.flow_view import make_game
 
-    game = Slither(**dict(game_items))
+    game = make_game(**dict(game_items))
     policy = get_policy(policy_name)
 
     def start(key, params):

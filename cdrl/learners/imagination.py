@@ -1,12 +1,12 @@
 """What the learners that train the controller in the model's imagination share: their static
-shape and the imagined rollout itself."""
+shape, the imagined rollout itself, and their update from a replayed chunk's states."""
 from __future__ import annotations
 
 import dataclasses
 
 import jax
 
-from cdrl.learners.replay_base import ReplayConfig, draw_buttons
+from cdrl.learners.replay_base import ReplayConfig, ReplayLearner, ReplayState, draw_buttons, starts
 from cdrl.models.base import Variant
 from cdrl.options import CONTROL
 
@@ -35,3 +35,27 @@ def imagine(variant: Variant, horizon: int, params, carry, action, frame, key, s
 
     _, traj = jax.lax.scan(body, (carry, action, frame), jax.random.split(key, horizon))
     return traj
+
+
+class ImaginationLearner(ReplayLearner):
+    """A replay learner whose controller learns from imagined rollouts that start at every real
+    state of a replayed chunk. A learner gives `objective(params, critic, carry, action, frame,
+    key) -> (actor loss, (critic loss, terms))`."""
+
+    @classmethod
+    def from_run(cls, cfg, model, game, env_params):
+        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
+                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
+        return cls(model, game, config, cls.hparams(cfg, model), env_params)
+
+    def objective(self, params, critic, carry, action, frame, key):
+        raise NotImplementedError
+
+    def replayed_update(self, state: ReplayState, chunk, carry, key, on):
+        begin = starts(self.model, jax.lax.stop_gradient(state.model.params), chunk, carry)
+
+        def losses(p, critic):
+            actor, (critic_loss, terms) = self.objective(p, critic, *begin, key)
+            return self.hp.ascent * on * actor + critic_loss, (actor, terms)
+
+        return self.controller_step(state, losses)

@@ -12,21 +12,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from cdrl.learners.imagination import ImaginationConfig, imagine
-from cdrl.learners.replay_base import (ReplayLearner, ReplayState, button_entropy, button_log_prob, critic_value,
-                                       lambda_returns, starts)
+from cdrl.learners.imagination import ImaginationLearner, imagine
+from cdrl.learners.replay_base import button_entropy, button_log_prob, critic_value, lambda_returns
 
 
-class ImaginationAC(ReplayLearner):
+class ImaginationAC(ImaginationLearner):
     """See the module docstring. `model` is a controller variant that predicts reward."""
 
     name = "imagination_ac"
-
-    @classmethod
-    def from_run(cls, cfg, model, game, env_params) -> "ImaginationAC":
-        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
-                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
-        return cls(model, game, config, cls.hparams(cfg, model), env_params)
 
     def objective(self, params, critic, carry, action, frame, key):
         """(actor loss, (critic loss, terms)) of one imagined rollout from every start."""
@@ -46,12 +39,3 @@ class ImaginationAC(ReplayLearner):
         actor_loss = -jnp.mean(logp * adv) - hp.entropy * jnp.mean(ent)
         return actor_loss, (critic_loss, {"imagined_return": jnp.mean(rets[0]), "critic_loss": critic_loss,
                                           "entropy": jnp.mean(ent)})
-
-    def replayed_update(self, state: ReplayState, chunk, carry, key, on):
-        begin = starts(self.model, jax.lax.stop_gradient(state.model.params), chunk, carry)
-
-        def losses(p, critic):
-            actor, (critic_loss, terms) = self.objective(p, critic, *begin, key)
-            return self.hp.ascent * on * actor + critic_loss, (actor, terms)
-
-        return self.controller_step(state, losses)

@@ -6,36 +6,19 @@ the discounted predicted reward of those steps, its gradient taken through the m
 """
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
-from cdrl.learners.imagination import ImaginationConfig, imagine
-from cdrl.learners.replay_base import ReplayLearner, ReplayState, starts
+from cdrl.learners.imagination import ImaginationLearner, imagine
 
 
-class ImaginedAscent(ReplayLearner):
+class ImaginedAscent(ImaginationLearner):
     """See the module docstring. `model` is a controller variant that predicts reward."""
 
     name = "imagined_ascent"
 
-    @classmethod
-    def from_run(cls, cfg, model, game, env_params) -> "ImaginedAscent":
-        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
-                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
-        return cls(model, game, config, cls.hparams(cfg, model), env_params)
-
-    def objective(self, params, carry, action, frame, key):
-        """Minus the mean discounted imagined reward (the controller's loss), and its terms."""
+    def objective(self, params, critic, carry, action, frame, key):
+        """Minus the mean discounted imagined reward (the controller's loss); no critic."""
         traj = imagine(self.model, self.config.horizon, params, carry, action, frame, key, sample=False)
         discount = self.hp.gamma ** jnp.arange(self.config.horizon, dtype=jnp.float32)[:, None]
         objective = jnp.mean(jnp.sum(discount * traj["reward"], axis=0))
-        return -objective, {"imagined_return": objective}
-
-    def replayed_update(self, state: ReplayState, chunk, carry, key, on):
-        begin = starts(self.model, jax.lax.stop_gradient(state.model.params), chunk, carry)
-
-        def losses(p, critic):
-            actor, terms = self.objective(p, *begin, key)
-            return self.hp.ascent * on * actor + jnp.zeros(()), (actor, terms)
-
-        return self.controller_step(state, losses)
+        return -objective, (jnp.zeros(()), {"imagined_return": objective})

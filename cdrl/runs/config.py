@@ -7,7 +7,7 @@ fields. `config.json` in a run directory is `cfg.to_dict()`, nested by section.
 A recipe fills every option of its table that the run does not set itself; the config written
 to `config.json` holds the resolved values, so a run reads the same later whatever the recipes
 become. Configs written flat by older versions, and under old names, still load
-(`saved_config`, `cdrl.options.upgrade`).
+(`saved_config`, `upgrade`).
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
 from cdrl.models.base import Variant
 from cdrl.options import DEFAULT_RECIPE, RECIPES  # noqa: F401 (re-exported: the CLI's help and tests read them here)
-from cdrl.options import (AGENT_RECIPE, FAMILY_OVERRIDES, OFFLINE_WORLD_MODEL, PRESET_ALIASES, REPLAY_OVERRIDES,
-                          SECTIONS, upgrade)
+from cdrl.options import (AGENT_RECIPE, FAMILY_OVERRIDES, OFFLINE_WORLD_MODEL, PRESET_ALIASES, RECIPE_ALIASES,
+                          REPLAY_OVERRIDES, SECTIONS)
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
 
 OBS_NORMS = ("none", "data")
@@ -214,9 +214,28 @@ def check_value(name: str, kind: str, value) -> None:
                          f", got {value!r}")
 
 
+def upgrade(saved: dict) -> dict:
+    """A config as `config.json` or a checkpoint holds it, nested by section or flat (older
+    versions), as flat options under today's names: `controller` is `learner`, variant ppo is
+    learner ppo, recipe fast is tuned, preset small-max is small with max_filter 5."""
+    flat = dict(saved)
+    for name in SECTIONS:
+        if isinstance(flat.get(name), dict):
+            flat.update(flat.pop(name))
+    if "controller" in flat:
+        flat.setdefault("learner", flat.pop("controller"))
+    if flat.get("variant") == "ppo":
+        flat.update(variant="main", learner="ppo")
+    if flat.get("recipe") in RECIPE_ALIASES:
+        flat["recipe"] = RECIPE_ALIASES[flat["recipe"]]
+    if flat.get("preset") in PRESET_ALIASES:
+        flat["preset"], flat["max_filter"] = PRESET_ALIASES[flat["preset"]]
+    return flat
+
+
 def saved_config(saved: dict) -> RunConfig:
     """A `RunConfig` from a `config.json`: nested by section, or flat as older versions wrote
-    it, its options under old names or new (`cdrl.options.upgrade`). A config written before
+    it, its options under old names or new (`upgrade`). A config written before
     recipes existed holds no recipe: the options it lacks are the thesis recipe's, which is how
     it was trained."""
     return RunConfig(**{"recipe": "thesis", **upgrade(saved)})

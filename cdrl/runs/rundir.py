@@ -29,8 +29,7 @@ from cdrl.data import fingerprint
 from cdrl.data.atomic import atomic_write_text  # noqa: F401  (re-exported: how a run's files are written)
 from cdrl.data.lock import DirLock
 from cdrl.runs.checkpoint import CheckpointError, Checkpoints
-from cdrl.options import upgrade
-from cdrl.runs.config import RESUMABLE, RunConfig, saved_config
+from cdrl.runs.config import RESUMABLE, RunConfig, saved_config, upgrade
 
 
 class RunLog:

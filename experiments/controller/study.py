@@ -77,7 +77,8 @@ from cdrl import learners
 from cdrl.evaluation.play import EVAL_SEED, model_fit
 from cdrl.evaluation.stats import across
 from cdrl.models import make_variant
-from cdrl.runs.config import RunConfig
+from cdrl.options import PRESET_ALIASES
+from cdrl.runs.config import RunConfig, upgrade
 from cdrl.runs.online import restore_learner
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes
@@ -90,33 +91,33 @@ if not __package__:  # run as a file, not with -m: the repository root on the pa
 # the budget's game frames; `pretrain` first trains the world model offline for the budget's
 # `pretrain_steps` (RunConfig fields of that run).
 CONFIGS: dict[str, dict] = {
-    "critic": {"variant": "final_proposal", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
-    "imagine": {"variant": "final_proposal", "controller": "imagine", "optimizer": "adam", "lr": 1e-3},
-    "rollout": {"variant": "final_proposal", "controller": "rollout", "scope": "controller"},
-    "rollout-all": {"variant": "final_proposal", "controller": "rollout", "scope": "all"},
-    "critic-open": {"variant": "reward_prediction", "controller": "critic", "optimizer": "adam", "lr": 1e-3},
-    "critic-pre": {"variant": "final_proposal", "controller": "critic",
-                   "pretrain": {"variant": "final_proposal", "controller": "none"}},
-    "value-pre": {"variant": "final_proposal", "controller": "value", "gamma": 0.95, "entropy_coef": 0.05,
-                  "pretrain": {"variant": "final_proposal", "controller": "none"}},
-    "real-pre": {"variant": "final_proposal", "controller": "real", "noise_std": 0.05, "warmup_steps": 0,
-                 "pretrain": {"variant": "final_proposal", "controller": "none"}},
-    "real-pre-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
-                     "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none"}},
-    "real-pre-all-open": {"variant": "reward_prediction", "controller": "real", "scope": "all", "noise_std": 0.05,
-                          "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "controller": "none"}},
-    "real-pre-all-open-bal": {"variant": "reward_prediction", "controller": "real", "scope": "all", "noise_std": 0.05,
-                              "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "controller": "none",
+    "critic": {"variant": "final_proposal", "learner": "imagination_ac", "optimizer": "adam", "lr": 1e-3},
+    "imagine": {"variant": "final_proposal", "learner": "imagined_ascent", "optimizer": "adam", "lr": 1e-3},
+    "rollout": {"variant": "final_proposal", "learner": "thesis_ascent", "scope": "controller"},
+    "rollout-all": {"variant": "final_proposal", "learner": "thesis_ascent", "scope": "all"},
+    "critic-open": {"variant": "reward_prediction", "learner": "imagination_ac", "optimizer": "adam", "lr": 1e-3},
+    "critic-pre": {"variant": "final_proposal", "learner": "imagination_ac",
+                   "pretrain": {"variant": "final_proposal", "learner": "world_model"}},
+    "value-pre": {"variant": "final_proposal", "learner": "one_step_q", "gamma": 0.95, "entropy_coef": 0.05,
+                  "pretrain": {"variant": "final_proposal", "learner": "world_model"}},
+    "real-pre": {"variant": "final_proposal", "learner": "onpolicy_ac", "noise_std": 0.05, "warmup_steps": 0,
+                 "pretrain": {"variant": "final_proposal", "learner": "world_model"}},
+    "real-pre-all": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
+                     "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "learner": "world_model"}},
+    "real-pre-all-open": {"variant": "reward_prediction", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
+                          "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "learner": "world_model"}},
+    "real-pre-all-open-bal": {"variant": "reward_prediction", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
+                              "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "learner": "world_model",
                                                               "reward_balanced_weight": 0.003}},
-    "real-pre-all-bal": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
-                         "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "controller": "none",
+    "real-pre-all-bal": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
+                         "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "learner": "world_model",
                                                          "reward_balanced_weight": 0.003}},
-    "critic-pre-bal": {"variant": "final_proposal", "controller": "critic",
-                       "pretrain": {"variant": "final_proposal", "controller": "none", "reward_balanced_weight": 0.003}},
-    "real-all": {"variant": "final_proposal", "controller": "real", "scope": "all", "noise_std": 0.05,
+    "critic-pre-bal": {"variant": "final_proposal", "learner": "imagination_ac",
+                       "pretrain": {"variant": "final_proposal", "learner": "world_model", "reward_balanced_weight": 0.003}},
+    "real-all": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
                  "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
-    "ppo": {"variant": "ppo"},
-    "ppo-10x": {"variant": "ppo", "frames_factor": 10},
+    "ppo": {"learner": "ppo"},
+    "ppo-10x": {"learner": "ppo", "frames_factor": 10},
 }
 
 
@@ -125,8 +126,8 @@ class Budget:
     """How much every run of the experiment gets: the preset, the game frames of training,
     held-out games per evaluation and their step cap, evaluations per run, the model-based
     runs' updates before their controller learns, B x T of model-based runs and of PPO, the
-    steps of a world model's offline pre-training (B 4 x T 8, the `fast` recipe's), and the
-    game's level (`envs.slither.LEVELS`)."""
+    steps of a world model's offline pre-training (B 4 x T 8, the `tuned` recipe's), the
+    game's level (`envs.slither.LEVELS`) and the max filter the frames are shrunk after."""
 
     preset: str
     frames: int
@@ -138,6 +139,7 @@ class Budget:
     ppo_shape: tuple[int, int] = (16, 32)
     pretrain_steps: int = 8000
     level: str = "thesis"
+    max_filter: int = 1
 
 
 BUDGETS = {
@@ -151,7 +153,7 @@ def pretrain_config(name: str, budget: Budget, seed: int) -> RunConfig | None:
     """The offline pre-training run of configuration `name` for `seed` (None: it has none)."""
     if "pretrain" not in CONFIGS[name]:
         return None
-    return RunConfig(preset=budget.preset, steps=budget.pretrain_steps, seed=seed,
+    return RunConfig(preset=budget.preset, max_filter=budget.max_filter, steps=budget.pretrain_steps, seed=seed,
                      eval_every=max(1, budget.pretrain_steps // budget.evals), checkpoint_every=budget.pretrain_steps,
                      eval_episodes=6, tensorboard=False, level=budget.level, **CONFIGS[name]["pretrain"])
 
@@ -162,11 +164,12 @@ def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = Non
     options = dict(CONFIGS[name])
     factor = options.pop("frames_factor", 1)
     options.pop("pretrain", None)
-    batch, unroll = budget.ppo_shape if options["variant"] == "ppo" else budget.model_shape
+    batch, unroll = budget.ppo_shape if options.get("learner") == "ppo" else budget.model_shape
     steps = max(1, budget.frames * factor // (batch * unroll))
     every = max(1, steps // budget.evals)
     options = {"warmup_steps": budget.warmup_steps, **options}
-    return RunConfig(preset=budget.preset, batch=batch, unroll=unroll, steps=steps, seed=seed, eval_every=every,
+    return RunConfig(preset=budget.preset, max_filter=budget.max_filter, batch=batch, unroll=unroll, steps=steps,
+                     seed=seed, eval_every=every,
                      checkpoint_every=every, eval_episodes=budget.eval_episodes, episode_steps=budget.episode_steps,
                      tensorboard=False, init_from=str(init_from or ""), level=budget.level, **options)
 
@@ -201,7 +204,7 @@ def seed_result(run_dir: Path, budget: Budget) -> dict:
     if cfg.kind == "online" and make_variant(cfg.variant, cfg.arch).predicts_reward:
         _, program, state = restore_learner(run)
         seeds = np.arange(EVAL_SEED, EVAL_SEED + budget.eval_episodes)
-        fit = model_fit(program.model, program.params(state), program.game, program.env_params, seeds,
+        fit = model_fit(program.model, program.world_model(state), program.game, program.env_params, seeds,
                         budget.episode_steps)
         out["excess_ratio_held_out"] = fit.pop("excess_ratio")
         out["reward_fit"] = fit
@@ -273,6 +276,19 @@ def summarise(options: dict, per_seed: dict) -> dict:
     return row
 
 
+def options_now(options: dict) -> dict:
+    """A configuration's options as a result file holds them, under today's names (results
+    written before the learners had names say `controller` and variant ppo)."""
+    now = upgrade({k: v for k, v in options.items() if k != "pretrain"})
+    if "learner" in now:
+        name = now["learner"] = learners.canonical(now["learner"])
+        if name != learners.OFFLINE and not learners.learner_class(name).has_world_model:
+            now.pop("variant", None)  # a model-free learner plays whatever the variant
+    if "pretrain" in options:
+        now["pretrain"] = options_now(options["pretrain"])
+    return now
+
+
 def merge(parts: Sequence[dict]) -> dict:
     """Results of one experiment run in several invocations (other seeds, other configurations)
     as one: the per-seed rows pooled and the across-seed figures recomputed.
@@ -290,7 +306,10 @@ def merge(parts: Sequence[dict]) -> dict:
     first = parts[0]
 
     def budget_of(r):  # the budget's `name` only labels its other fields; read back, tuples are lists
-        return json.loads(json.dumps({k: v for k, v in r["budget"].items() if k not in ("seeds", "name")}))
+        budget = {"max_filter": 1, **r["budget"]}
+        if budget["preset"] in PRESET_ALIASES:  # an old name, written before --max-filter
+            budget["preset"], budget["max_filter"] = PRESET_ALIASES[budget["preset"]]
+        return json.loads(json.dumps({k: v for k, v in budget.items() if k not in ("seeds", "name")}))
 
     base = budget_of(first)
     configs: dict[str, tuple[dict, dict]] = {}
@@ -302,8 +321,8 @@ def merge(parts: Sequence[dict]) -> dict:
         if part["references"] != first["references"]:
             raise ValueError(f"results {i} scored other held-out games than results 0 (its reference rows differ)")
         for name, row in part["configs"].items():
-            options, per_seed = configs.setdefault(name, (row["options"], {}))
-            if row["options"] != options:
+            options, per_seed = configs.setdefault(name, (options_now(row["options"]), {}))
+            if options_now(row["options"]) != options:
                 raise ValueError(f"configuration {name!r} of results {i} has other options than before: "
                                  f"{row['options']} against {options}")
             for seed, result in row["seeds"].items():
@@ -382,6 +401,8 @@ def main(argv=None) -> int:
     parser.add_argument("--level", default="thesis", help="the game's level (envs.slither.LEVELS; default: thesis)")
     parser.add_argument("--preset", default=None,
                         help="the architecture preset (cdrl.models.PRESETS; default: the budget's, small for --full)")
+    parser.add_argument("--max-filter", type=int, default=1,
+                        help="side of the max filter the game's frames are shrunk after (default: 1, none)")
     parser.add_argument("--work-dir", default=None, help="where the runs go (default: a temporary directory)")
     parser.add_argument("--out", default=None, help="also write the JSON result to this file")
     parser.add_argument("--figure", default=None, help="draw the learning curves into this PNG file")
@@ -395,7 +416,8 @@ def main(argv=None) -> int:
     jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR")
                       or tempfile.mkdtemp(prefix="cdrl-controller-xla-"))
     budget = BUDGETS["full" if args.full else "tiny" if args.quick else "default"]
-    budget = dataclasses.replace(budget, level=args.level, preset=args.preset or budget.preset)
+    budget = dataclasses.replace(budget, level=args.level, preset=args.preset or budget.preset,
+                                 max_filter=args.max_filter)
     work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
     load_start = os.getloadavg()[0]
 
