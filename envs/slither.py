@@ -346,6 +346,18 @@ class Slither:
         self.grid = self.spec.grid
         self.pellet_margin = float(pellet_radius) + 1.0
 
+    def _key(self) -> tuple:
+        return (type(self), self.num_opponents, self.max_segments, self.arena_size, self.pellet_cell_size,
+                self.pellet_spawn_tries, self.spec)
+
+    def __eq__(self, other) -> bool:
+        """Games of the same class and static sizes are equal, so jitted functions that take a
+        game as a static argument compile once for all of them."""
+        return isinstance(other, Slither) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
     @functools.cached_property
     def jit(self) -> "JittedSlither":
         """``jax.jit`` versions of this game's functions, compiled once per game."""

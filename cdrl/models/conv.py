@@ -20,6 +20,13 @@ times every layer; the figures below are from that machine, 2 cores):
   over the whole batch at once (176 ms for the 76 -> 38 layer over 256 frames, 84 ms in tiles
   of 8), so tiling is what keeps a batch from costing frames per second.
 
+Under `vmap` (a sweep's configurations) XLA's own batching rule turns a convolution whose
+kernel is batched into a grouped convolution, which its CPU backend runs group by group.
+Each pass here is a leaf with its own rule (`_leaf`): with only the frames batched, the
+configuration axis folds into the frames; with the kernels batched too, one convolution per
+configuration, unrolled for a few and by `lax.map` for many. The passes are only ever
+differentiated through their `custom_vjp`, so the leaves need no derivative of their own.
+
 `jax.custom_vjp` wires them: the gradient of `conv2d` with respect to its input is the
 transposed convolution of the output gradient, and the gradient of `conv_transpose` with
 respect to its input is the strided convolution of the output gradient (XLA's own rules
@@ -46,6 +53,43 @@ FORMULATION = os.environ.get("CDRL_CONV_FORMULATION", "auto")
 # bounds the compile time).
 KERNEL_GRAD_TILE = 8
 MAX_KERNEL_GRAD_TILES = 32
+# Under `vmap`, configurations up to this many run as unrolled convolutions; more by `lax.map`.
+MAX_UNROLLED_CONFIGS = 8
+
+
+def _leaf(fn=None, *, foldable: bool = True):
+    """`fn(a, b, *static)` with a batching rule of its own (see the module docstring): a
+    convolution pass whose first argument holds independent frames on its leading axis
+    (`foldable`: the pass is frame by frame, so a batch of configurations folds into the
+    frames while `b` is shared) and whose second is a kernel, or for the kernel gradient the
+    other operand of a sum over the frames (not foldable)."""
+    if fn is None:
+        return partial(_leaf, foldable=foldable)
+
+    def per_config(axis_size, a, b, static):
+        if axis_size <= MAX_UNROLLED_CONFIGS:
+            return jnp.stack([call(a[i], b[i], *static) for i in range(axis_size)])
+        return jax.lax.map(lambda ab: call(ab[0], ab[1], *static), (a, b))
+
+    def call(a, b, *static):
+        @jax.custom_batching.custom_vmap
+        def leaf(a, b):
+            return fn(a, b, *static)
+
+        @leaf.def_vmap
+        def rule(axis_size, in_batched, a, b):
+            a_batched, b_batched = in_batched
+            if foldable and a_batched and not b_batched:
+                y = call(a.reshape((-1,) + a.shape[2:]), b, *static)
+                return y.reshape((axis_size, a.shape[1]) + y.shape[1:]), True
+            a = a if a_batched else jnp.broadcast_to(a, (axis_size,) + a.shape)
+            b = b if b_batched else jnp.broadcast_to(b, (axis_size,) + b.shape)
+            return per_config(axis_size, a, b, static), True
+
+        return leaf(a, b)
+
+    call.__doc__, call.__name__ = fn.__doc__, fn.__name__
+    return call
 
 
 def _native(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
@@ -69,6 +113,7 @@ def _out_size(size: int, k: int, stride: int, padding: int) -> int:
     return (size + 2 * padding - k) // stride + 1
 
 
+@_leaf
 def _space_to_depth_conv(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
     """The strided convolution as a stride-1 one with a (k/s) x (k/s) window on the input
     folded space-to-depth (for strides that divide the kernel)."""
@@ -80,12 +125,17 @@ def _space_to_depth_conv(x: jax.Array, kernel: jax.Array, stride: int, padding: 
     return jax.lax.conv_general_dilated(folded, kernel, (1, 1), "VALID", dimension_numbers=_DIMS)
 
 
+@_leaf
+def _native_leaf(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    return _native(x, kernel, stride, padding)
+
+
 def _strided_forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
     # A single input channel gives XLA's convolution nothing to vectorise over; folded
     # space-to-depth it has s*s (the thesis's first layer over 32 frames: 2.6 ms against 3.8 ms).
     if x.shape[-1] == 1:
         return _space_to_depth_conv(x, kernel, stride, padding)
-    return _native(x, kernel, stride, padding)
+    return _native_leaf(x, kernel, stride, padding)
 
 
 def _flip_io(kernel: jax.Array) -> jax.Array:
@@ -93,6 +143,7 @@ def _flip_io(kernel: jax.Array) -> jax.Array:
     return kernel.transpose(0, 1, 3, 2)
 
 
+@_leaf(foldable=False)
 def _kernel_grad_tile(x: jax.Array, ct: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
     """d<conv2d(x, kernel), ct>/d kernel as one convolution, written in the layout XLA's CPU
     backend runs through its Eigen convolution: the frames are the contracted feature axis
@@ -128,6 +179,7 @@ def _kernel_grad(x: jax.Array, ct: jax.Array, k: int, stride: int, padding: int)
     return total
 
 
+@_leaf
 def _subpixel_full(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     """The transposed convolution (kernel [kh, kw, in, out]) before any crop, (h - 1) * s + k
     rows, as one stride-1 convolution with s*s*out channels and depth-to-space (for strides

@@ -56,8 +56,9 @@ def source_of(cfg: RunConfig) -> tuple[RunConfig, Any] | None:
     where = f"init_from {cfg.init_from}"
     if cfg.kind == "model_free":
         raise ValueError(f"{where}: {cfg.learner} has no world model to start from another run's")
+    source = RunDir(cfg.init_from)
     try:
-        src, params, _ = restore_params(RunDir(cfg.init_from))
+        src, params, _ = restore_params(source)
     except (FileNotFoundError, ValueError) as exc:
         raise ValueError(f"{where}: {exc}") from None
     for name in ("variant", "preset", "max_filter"):
