@@ -32,12 +32,12 @@ class _RunConfigMethods:
     every value, and the model, optimiser and loss numbers they make."""
 
     def __post_init__(self, controller: str | None = None):
-        old = upgrade({"controller": controller} if controller is not None else {}) | upgrade(
-            {"variant": self.variant, "recipe": self.recipe, "preset": self.preset})
-        if self.preset in PRESET_ALIASES and self.max_filter not in (1, old["max_filter"]):
-            raise ValueError(f"preset {self.preset!r} is preset small with max_filter 5; got max_filter "
-                             f"{self.max_filter}")
-        for name, value in old.items():
+        named = {"variant": self.variant, "recipe": self.recipe, "preset": self.preset}
+        now = upgrade(named if controller is None else {**named, "controller": controller})
+        if self.preset in PRESET_ALIASES and self.max_filter not in (1, now["max_filter"]):
+            raise ValueError(f"preset {self.preset!r} is preset {now['preset']} with max_filter {now['max_filter']}; "
+                             f"got max_filter {self.max_filter}")
+        for name, value in now.items():
             object.__setattr__(self, name, value)
         object.__setattr__(self, "learner", learners.canonical(self.learner))
         if self.recipe not in RECIPES:
