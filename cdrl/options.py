@@ -38,7 +38,9 @@ class GameOptions:
 
     data: str = _opt("game", "'game' (collect from the built-in game and cache it), 'synthetic', or a data set directory")
     level: str = _opt("thesis", "level of the built-in game (data collection and online play): thesis, flat, sparse, "
-                                "clean, visible, heading, thesis-heading, thesis-flow (envs.slither.LEVELS)")
+                                "clean, visible, turned-true-visible, turned-true, turned-redrawn, turned "
+                                "(envs.slither.LEVELS); heading, thesis-heading and thesis-flow are the old names of "
+                                "turned-true-visible, turned-true and turned-redrawn")
     env: str = _opt("", "game parameters over the level's, e.g. 'max_steps=300,pellet_init_fill=0.3'")
     episodes: int = _opt(60, "episodes to collect when data is 'game' or 'synthetic'")
     episode_steps: int = _opt(200, "step limit of a collected episode")
@@ -92,6 +94,23 @@ class LossOptions:
     multistep: str = _opt("1", "offline runs: multi-step training: K feeds the model its own prediction between "
                                "real frames every K steps of a chunk (1: teacher forcing); 'K1,K2,...' a "
                                "curriculum over equal parts of --steps (Oh et al. 2015: 1,3,5)")
+    lookahead_steps: int = _opt(0, "controller variants, offline and the replay learners: K imagined steps from real "
+                                   "states, each scored against the real frame and reward, with reward, continuation "
+                                   "and value heads on the model's state (cdrl.training.lookahead; 0: off; TD-MPC2 "
+                                   "trains 3, MuZero 5)")
+    lookahead_stride: int = _opt(0, "the look-ahead starts from every this-many-th real step of a chunk (0: K, which "
+                                    "costs about one more pass over the chunk)")
+    imagined_frame_weight: float = _opt(1.0, "look-ahead: weight of the imagined frames' BCE (the imagined "
+                                             "rewards' squared error takes reward_weight)", traced=True)
+    reward_head_weight: float = _opt(1.0, "look-ahead: weight of the reward head's two-hot cross-entropy",
+                                     traced=True)
+    cont_weight: float = _opt(1.0, "look-ahead: weight of the continuation head's BCE", traced=True)
+    value_weight: float = _opt(1.0, "look-ahead: weight of the value head's two-hot cross-entropy against "
+                                    "lambda-returns (gamma, gae_lambda)", traced=True)
+    head_grad: float = _opt(0.01, "look-ahead: scale of the heads' gradient into the model (the heads themselves "
+                                  "learn at full scale, by Adam at ctrl_lr)", traced=True)
+    value_target_decay: float = _opt(0.98, "look-ahead: per update, the value's target copy keeps this share of "
+                                           "itself and takes the rest from the value head", traced=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,7 +141,8 @@ class ControlOptions:
     replay: int = _opt(64, "replay learners: chunks kept in the replay buffer")
     model_updates: int = _opt(4, "replay learners: model updates per collected chunk")
     horizon: int = _opt(15, "imagined_ascent and imagination_ac: imagined steps")
-    ctrl_lr: float = _opt(3e-4, "replay learners: Adam learning rate of the controller and the critic", traced=True)
+    ctrl_lr: float = _opt(3e-4, "replay learners: Adam learning rate of the controller and the critic; the "
+                                "look-ahead heads' too", traced=True)
     gamma: float = _opt(0.99, "discount of future reward", traced=True)
     gae_lambda: float = _opt(0.95, "ppo: lambda of generalised advantage estimation; the replay learners: of the "
                                    "lambda-returns", traced=True)

@@ -41,6 +41,12 @@ ACCEPTED = {
     ("gamma", "0"),  # a myopic discount
     ("gae_lambda", "0"),  # one-step advantages
     ("obs_mean", "0"), ("obs_mean", "-1"),  # any finite brightness offset of the encoder's input
+    ("lookahead_steps", "0"),  # no look-ahead losses (the default)
+    ("lookahead_stride", "0"),  # the look-ahead's starts every K steps (the default)
+    ("imagined_frame_weight", "0"), ("reward_head_weight", "0"), ("cont_weight", "0"),  # a look-ahead term off
+    ("value_weight", "0"),  # no value head's loss
+    ("head_grad", "0"),  # the heads learn without moving the model
+    ("value_target_decay", "0"),  # the value's target is the head itself
 }
 # seed 0; a crop at the frame's edge; --devices 0 (every device)
 COLLECT_ACCEPTED = {("--seed", "0"), ("--crop", 0, "0"), ("--crop", 1, "0"), ("--devices", "0")}

@@ -23,6 +23,7 @@ from cdrl.learners.api import train_program
 from cdrl.learners.imagination import ImaginationConfig
 from cdrl.learners.onpolicy_ac import OnPolicyConfig
 from cdrl.models import nets
+from cdrl.training.lookahead import lambda_returns
 from cdrl.training.optim import HParams, OptHParams
 from envs.policies import get_policy, privileged_policy
 from experiments.controller import study
@@ -107,14 +108,14 @@ def test_lambda_returns_against_the_recursion_with_episode_ends():
     ended[3, 0] = 0.0
     for d in (None, ended):
         for lam in (0.0, 0.6, 1.0):
-            out = np.asarray(rb.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, lam,
+            out = np.asarray(lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, lam,
                                                   None if d is None else jnp.asarray(d)))
             ref, nxt = np.zeros_like(r), last
             for k in reversed(range(7)):
                 nxt = r[k] + 0.9 * (1.0 if d is None else d[k]) * ((1 - lam) * v[k] + lam * nxt)
                 ref[k] = nxt
             np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
-    mc = np.asarray(rb.lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, 1.0, jnp.asarray(ended)))
+    mc = np.asarray(lambda_returns(*map(jnp.asarray, (r, v, last)), 0.9, 1.0, jnp.asarray(ended)))
     assert mc[0, 0] == pytest.approx(sum(0.9 ** k * r[k, 0] for k in range(4)), rel=1e-5)
 
 

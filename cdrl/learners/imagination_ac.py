@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.learners.imagination import ImaginationLearner, imagine
-from cdrl.learners.replay_base import button_entropy, button_log_prob, critic_value, lambda_returns
+from cdrl.learners.replay_base import button_entropy, button_log_prob, critic_value
+from cdrl.training.lookahead import lambda_returns
 
 
 class ImaginationAC(ImaginationLearner):

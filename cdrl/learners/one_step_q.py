@@ -15,7 +15,8 @@ import jax.numpy as jnp
 from cdrl.data.stream import Chunk
 from cdrl.models.base import Variant
 from cdrl.learners.replay_base import (BUTTON_COMBOS, ReplayConfig, ReplayLearner, ReplayState, button_entropy,
-                                       critic_value, lambda_returns, starts)
+                                       critic_value, starts)
+from cdrl.training.lookahead import lambda_returns
 
 
 def after_one_step(variant: Variant, params, carry, frame, buttons):

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 from cdrl.data.stream import Chunk
 from cdrl.learners.ppo import clipped_surrogate
 from cdrl.learners.replay_base import (ReplayConfig, ReplayLearner, ReplayState, button_entropy, button_log_prob,
-                                       critic_value, lambda_returns)
+                                       critic_value)
+from cdrl.training.lookahead import lambda_returns
 from cdrl.options import CONTROL
 from cdrl.training.step import step_inputs
 

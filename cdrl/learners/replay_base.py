@@ -41,6 +41,7 @@ from cdrl.learners.game_batch import Games, Observation, copy_scores, observe, r
 from cdrl.models import nets
 from cdrl.options import CONTROL, DEFAULT_RECIPE, FAMILY_OVERRIDES
 from cdrl.models.base import StepInput, Variant
+from cdrl.training import lookahead
 from cdrl.training.optim import HParams, OptHParams, init_opt_state
 from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
 
@@ -140,21 +141,6 @@ def button_log_prob(probs: jax.Array, buttons: jax.Array) -> jax.Array:
     """log P(`buttons`) under independent Bernoulli(`probs`), summed over the last axis."""
     p = jnp.clip(probs, 1e-6, 1 - 1e-6)
     return jnp.sum(buttons * jnp.log(p) + (1.0 - buttons) * jnp.log1p(-p), axis=-1)
-
-
-def lambda_returns(rewards, values, last, gamma, lam, not_done=None):
-    """R_k = r_k + γ d_k ((1 - λ) V_{k+1} + λ R_{k+1}), R_H = `last`: λ-returns of `[H, N]`
-    rewards with the values V_1 .. V_H after each step; `not_done` d_k (default 1) is 0 where the
-    episode ended with r_k, which then bootstraps nothing."""
-    not_done = jnp.ones_like(rewards) if not_done is None else jnp.broadcast_to(not_done, rewards.shape)
-
-    def body(nxt, x):
-        r, v_next, nd = x
-        ret = r + gamma * nd * ((1.0 - lam) * v_next + lam * nxt)
-        return ret, ret
-
-    _, rets = jax.lax.scan(body, last, (rewards, values, not_done), reverse=True)
-    return rets
 
 
 def critic_value(critic, h):
@@ -258,12 +244,17 @@ class ReplayLearner(Learner):
         (loss, (_, terms, _)), grads = jax.value_and_grad(
             lambda p: chunk_loss(variant, p, carry, hp.model, chunk), has_aux=True)(model.params)
         grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, variant.controller_mask(model.params))
+        heads = variant.reward_mask(model.params)
+        if hp.model.lookahead is not None:  # the look-ahead heads step with the heads' optimiser too
+            heads = jax.tree.map(jnp.maximum, heads, lookahead.head_mask(model.params))
         params, opt_state, guard = guarded_update(hp.model.opt, hp.model.diverge_threshold, model.params,
-                                                  model.opt_state, grads, loss)
+                                                  model.opt_state, jax.tree.map(lambda g, m: g * (1.0 - m), grads,
+                                                                                lookahead.head_mask(model.params)),
+                                                  loss)
         head, head_state, head_guard = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, model.params,
                                                       state.reward_opt_state, grads, loss)
-        params = jax.tree.map(lambda s, a, m: jnp.where(m > 0, a, s), params, head,
-                              variant.reward_mask(model.params))
+        params = jax.tree.map(lambda s, a, m: jnp.where(m > 0, a, s), params, head, heads)
+        params = lookahead.update_target(params, hp.model.lookahead)
         guard = {**guard, "finite": guard["finite"] & head_guard["finite"],
                  "diverged": guard["diverged"] | head_guard["diverged"]}
         model = model.replace(params=params, opt_state=opt_state)
@@ -365,7 +356,7 @@ def _init(variant, game, env_params, cfg, key, hp) -> ReplayState:
         raise ValueError(f"variant {variant.name!r} predicts no reward: a controller trained in imagination needs "
                          "reward_prediction or final_proposal")
     k_params, k_critic, k_env, k_run = jax.random.split(key, 4)
-    params = variant.init(k_params)
+    params = lookahead.with_heads(variant, variant.init(k_params), k_params, hp.model.lookahead)
     b, s, t, n = cfg.num_envs, variant.arch.image_size, cfg.unroll, cfg.replay
     carry = variant.init_carry(b)
     critic = nets.init_mlp(k_critic, (variant.arch.lstm_size, CRITIC_HIDDEN, 1), final_selu=False)

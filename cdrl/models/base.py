@@ -148,6 +148,15 @@ class Variant:
     def unroll(self, params: dict, carry: Carry, xs: StepInput) -> tuple[Carry, Outputs]:
         return jax.lax.scan(lambda c, x: self.step(params, c, x), carry, xs)
 
+    def unroll_states(self, params: dict, carry: Carry, xs: StepInput) -> tuple[Carry, Outputs, Carry]:
+        """`unroll`, with the carry after every step (`[T, B, ...]`) as well."""
+        def body(c, x):
+            c, out = self.step(params, c, x)
+            return c, (out, c)
+
+        carry, (outs, carries) = jax.lax.scan(body, carry, xs)
+        return carry, outs, carries
+
     def unroll_fed(self, params: dict, carry: Carry, xs: StepInput, observed: jax.Array) -> tuple[Carry, Outputs]:
         """`unroll` where step t sees the real frame `xs.obs[t]` only where `observed` `[T, B]`
         is true, and elsewhere the sigmoid of its own previous prediction, which keeps its

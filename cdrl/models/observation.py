@@ -41,6 +41,16 @@ class OpenLoop(Variant):
         )
         return carry, self._outputs(params, ks, ds)
 
+    def unroll_states(self, params, carry, xs):
+        ks = self.encode(params, xs.obs, xs.action)
+
+        def body(c, kx):
+            c, d = self.recur(params, c, kx[0], kx[1])
+            return c, (d, c)
+
+        carry, (ds, carries) = jax.lax.scan(body, carry, (ks, xs.is_first), unroll=CORE_UNROLL)
+        return carry, self._outputs(params, ks, ds), carries
+
 
 class BaselineFF(OpenLoop):
     """Figure 4.2: k_t = E_o(o_t); d = FC(k_t); prediction D_o(d). No recurrence."""

@@ -22,6 +22,7 @@ from cdrl.models.base import Variant
 from cdrl.options import DEFAULT_RECIPE, RECIPES  # noqa: F401 (re-exported: the CLI's help and tests read them here)
 from cdrl.options import (AGENT_RECIPE, FAMILY_OVERRIDES, OFFLINE_WORLD_MODEL, PRESET_ALIASES, RECIPE_ALIASES,
                           REPLAY_OVERRIDES, SECTIONS)
+from cdrl.training.lookahead import LookaheadHParams
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
 
 OBS_NORMS = ("none", "data")
@@ -32,7 +33,7 @@ class _RunConfigMethods:
     every value, and the model, optimiser and loss numbers they make."""
 
     def __post_init__(self, controller: str | None = None):
-        named = {"variant": self.variant, "recipe": self.recipe, "preset": self.preset}
+        named = {"variant": self.variant, "recipe": self.recipe, "preset": self.preset, "level": self.level}
         now = upgrade(named if controller is None else {**named, "controller": controller})
         if self.preset in PRESET_ALIASES and self.max_filter not in (1, now["max_filter"]):
             raise ValueError(f"preset {self.preset!r} is preset {now['preset']} with max_filter {now['max_filter']}; "
@@ -60,6 +61,8 @@ class _RunConfigMethods:
         if self.kind != "offline" and curriculum != (1,):
             raise ValueError(f"multistep {self.multistep!r} is for offline runs (teacher-forced on recorded "
                              f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
+        if self.lookahead_steps > 0:
+            self.check_lookahead()
         takes_balanced = (self.kind != "model_free" and VARIANTS[self.variant].predicts_reward
                           and not (self.kind == "online" and self.learner == "thesis_ascent"))
         if self.reward_balanced_weight > 0 and not takes_balanced:
@@ -79,6 +82,29 @@ class _RunConfigMethods:
                     raise ValueError(f"{name} {getattr(self, name)!r} sets the built-in game, which a run on data "
                                      f"{self.data!r} never plays (it trains on recorded episodes); drop it, or "
                                      "train on data 'game'")
+
+    def check_lookahead(self):
+        """The look-ahead losses imagine through the model's own actions, on chunks it learns from
+        teacher-forced: a controller variant, offline or with a replay learner."""
+        learner = self.learner
+        replay = learner != learners.OFFLINE and self.kind == "online" and \
+            learners.learner_class(learner).recipe_family == "replay"
+        if not VARIANTS[self.variant].has_controller or not (self.kind == "offline" or replay):
+            raise ValueError(f"lookahead_steps {self.lookahead_steps} trains a controller variant (action_loop, "
+                             "reward_prediction, final_proposal) offline or with a learner that keeps a replay buffer; "
+                             f"got variant {self.variant!r} with learner {learner!r}")
+        if self.feed_curriculum != (1,):
+            raise ValueError(f"lookahead_steps and multistep {self.multistep!r} both train on the model's own "
+                             "predictions; choose one")
+
+    def lookahead_hparams(self):
+        """The look-ahead's numbers (`cdrl.training.lookahead.LookaheadHParams`), None when off."""
+        if self.lookahead_steps == 0:
+            return None
+        return LookaheadHParams.create(steps=self.lookahead_steps, stride=self.lookahead_stride or None,
+                                       head_opt=OptHParams.create("adam", lr=self.ctrl_lr, grad_clip=100.0),
+                                       gamma=self.gamma, lam=self.gae_lambda, target_decay=self.value_target_decay,
+                                       head_grad=self.head_grad)
 
     def recipe_values(self) -> dict[str, object]:
         """The options the run's recipe sets for its variant and learner."""
@@ -138,11 +164,16 @@ class _RunConfigMethods:
         `reward_weight` and `reward_balanced_weight`; the curriculum's first K; `fed`: unroll
         with fed-back predictions, by default where the curriculum has a K above 1)."""
         ks = self.feed_curriculum
+        weights = {"reward_mse": self.reward_weight, "reward_balanced": self.reward_balanced_weight} \
+            if variant.predicts_reward else {}
+        heads = self.lookahead_hparams()
+        if heads is not None:
+            weights.update(imag_obs_bce=self.imagined_frame_weight, imag_reward_mse=self.reward_weight,
+                           reward_twohot=self.reward_head_weight, cont_bce=self.cont_weight,
+                           value_twohot=self.value_weight)
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
-                              loss_weights={"reward_mse": self.reward_weight,
-                                            "reward_balanced": self.reward_balanced_weight}
-                              if variant.predicts_reward else None,
-                              feed_every=ks[0], fed=max(ks) > 1 if fed is None else fed)
+                              loss_weights=weights or None, feed_every=ks[0],
+                              fed=max(ks) > 1 if fed is None else fed, lookahead=heads)
 
 
 def _fields() -> list[tuple]:
@@ -188,6 +219,9 @@ RANGES: dict[str, Range] = {
     **dict.fromkeys(("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
                      "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
                      "horizon", "max_filter"), AT_LEAST_1),
+    **dict.fromkeys(("lookahead_steps", "lookahead_stride", "imagined_frame_weight", "reward_head_weight",
+                     "cont_weight", "value_weight", "head_grad"), AT_LEAST_0),
+    "value_target_decay": FRACTION,
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",
                      "grad_clip", "ascent", "reward_weight", "reward_balanced_weight", "noise_std", "value_coef",
                      "entropy_coef"), AT_LEAST_0),
@@ -217,7 +251,10 @@ def check_value(name: str, kind: str, value) -> None:
 def upgrade(saved: dict) -> dict:
     """A config as `config.json` or a checkpoint holds it, nested by section or flat (older
     versions), as flat options under today's names: `controller` is `learner`, variant ppo is
-    learner ppo, recipe fast is tuned, preset small-max is small with max_filter 5."""
+    learner ppo, recipe fast is tuned, preset small-max is small with max_filter 5, a level's old
+    name is its new one (`envs.slither.LEVEL_ALIASES`)."""
+    from envs.slither import LEVEL_ALIASES  # not with this module: see `RunConfig.__post_init__`
+
     flat = dict(saved)
     for name in SECTIONS:
         if isinstance(flat.get(name), dict):
@@ -230,6 +267,8 @@ def upgrade(saved: dict) -> dict:
         flat["recipe"] = RECIPE_ALIASES[flat["recipe"]]
     if flat.get("preset") in PRESET_ALIASES:
         flat["preset"], flat["max_filter"] = PRESET_ALIASES[flat["preset"]]
+    if flat.get("level") in LEVEL_ALIASES:
+        flat["level"] = LEVEL_ALIASES[flat["level"]]
     return flat
 
 

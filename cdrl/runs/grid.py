@@ -28,10 +28,11 @@ from cdrl.data.stream import Chunk, ChunkStream
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
 from cdrl.training.loop import Job, LoopResult, Plan, Sink, enter_stage, host_loop, stage_schedule
+from cdrl.training.lookahead import with_heads
 from cdrl.training.monitor import group_names
-from cdrl.training.optim import HParams, init_opt_state
+from cdrl.training.optim import HParams
 from cdrl.training.parallel import ConfigAxis, shard_configs
-from cdrl.training.step import TrainState, init_params, train_step_fn
+from cdrl.training.step import TrainState, init_opt_states, init_params, train_step_fn
 
 # The options a sweep may vary: every one is a traced number of the train step (or the seed,
 # which sets the initialisation and the data order), so the whole grid is one program.
@@ -115,11 +116,11 @@ def init_sweep(variant: Variant, cfgs: Sequence[RunConfig]) -> tuple[TrainState,
     fed = any(c.feed_curriculum[0] > 1 for c in cfgs)  # one program for the grid
     hps = stack([c.hparams(variant, fed=fed) for c in cfgs])
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
-    params = init_params(variant, keys)
+    params = init_params(variant, keys, hps.lookahead)
     carry = variant.init_carry(cfgs[0].batch)
     states = TrainState(
         params=params,
-        opt_state=jax.vmap(functools.partial(init_opt_state, hps.opt))(params),
+        opt_state=jax.vmap(init_opt_states)(hps, params),
         carry=jax.tree.map(lambda x: jnp.broadcast_to(x, (len(cfgs),) + x.shape), carry),
         step=jnp.zeros((len(cfgs),), jnp.int32),
     )
@@ -158,7 +159,9 @@ class SweepJob(Job):
         self.lanes = len(self.held)
         self.desc = f"sweep {variant.name} x{len(cfgs)}"
         self.frames_per_step = cfgs[0].batch * cfgs[0].unroll
-        self.ratio_names = group_names(jax.eval_shape(variant.init, jax.random.PRNGKey(0)))
+        heads = cfgs[0].lookahead_hparams()
+        self.ratio_names = group_names(jax.eval_shape(lambda k: with_heads(variant, variant.init(k), k, heads),
+                                                      jax.random.PRNGKey(0)))
         self.threshold = float(cfgs[0].diverge_threshold)
         self.schedule = stage_schedule(variant, steps)
         self.switches = {first for first, _ in self.schedule}

@@ -15,11 +15,13 @@ import dataclasses
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 
 from cdrl.models import make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.online import build_learner
 from cdrl.runs.rundir import RunDir
+from cdrl.training import lookahead
 from cdrl.training.step import init_state
 
 ADOPTED = ("obs_norm", "obs_mean", "obs_std", "action_dim")  # what the encoder learnt on
@@ -66,7 +68,9 @@ def source_of(cfg: RunConfig) -> tuple[RunConfig, Any] | None:
             raise ValueError(f"{where}: its run trains {name} {getattr(src, name)!r}, this one {getattr(cfg, name)!r}; "
                              "a world model starts only from one of the same variant and preset")
     adopted = dataclasses.replace(cfg, **{name: getattr(src, name) for name in ADOPTED})
-    like = jax.eval_shape(make_variant(cfg.variant, adopted.arch).init, jax.random.PRNGKey(0))
+    variant, heads = make_variant(cfg.variant, adopted.arch), cfg.lookahead_hparams()
+    params = fit_heads(variant, params, heads, jax.random.PRNGKey(cfg.seed))
+    like = jax.eval_shape(lambda k: lookahead.with_heads(variant, variant.init(k), k, heads), jax.random.PRNGKey(0))
     if jax.tree_util.tree_structure(params) != jax.tree_util.tree_structure(like):
         raise ValueError(f"{where}: its parameters are not those of this run's model")
     for (path, got), want in zip(jax.tree_util.tree_leaves_with_path(params), jax.tree.leaves(like)):
@@ -74,3 +78,17 @@ def source_of(cfg: RunConfig) -> tuple[RunConfig, Any] | None:
             raise ValueError(f"{where}: parameter {jax.tree_util.keystr(path)} has shape {got.shape}, this run's "
                              f"model {want.shape}")
     return adopted, params
+
+
+def fit_heads(variant, params, heads, key):
+    """The source's parameters with the look-ahead heads this run trains: the source's own where
+    it trained heads of the same shape, fresh ones from `key` where it trained none or others,
+    none where this run trains none (`heads` None)."""
+    model = {k: v for k, v in params.items() if k != "lookahead"}
+    if heads is None:
+        return model
+    fresh = lookahead.with_heads(variant, model, key, heads)
+    if "lookahead" in params and jax.tree.map(jnp.shape, params["lookahead"]) == jax.tree.map(jnp.shape,
+                                                                                               fresh["lookahead"]):
+        return params
+    return fresh

@@ -15,7 +15,7 @@ divergence threshold.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import flax.struct
 import jax
@@ -122,12 +122,16 @@ class HParams:
     teacher forcing). It is traced, so a curriculum changes it without compiling again; the
     static `fed` says whether the program unrolls with fed-back predictions at all (the
     one-step unroll of the open-loop variants encodes a whole chunk at once, which a fed-back
-    one cannot)."""
+    one cannot).
+
+    `lookahead` turns on the losses over a few imagined steps and the heads on the model's
+    state (`cdrl.training.lookahead`); its terms join `loss_weights`."""
 
     opt: OptHParams
     loss_weights: dict[str, jax.Array]
     diverge_threshold: jax.Array
     feed_every: jax.Array
+    lookahead: Any = None  # `cdrl.training.lookahead.LookaheadHParams`: its losses and heads (None: off)
     fed: bool = flax.struct.field(pytree_node=False, default=False)
 
     @classmethod
@@ -141,10 +145,17 @@ class HParams:
         opt: OptHParams | None = None,
         feed_every: int = 1,
         fed: bool | None = None,
+        lookahead=None,
     ) -> "HParams":
         """`opt`: the optimiser's numbers (default: SGD with `lr` and `momentum`, which it
-        replaces). `fed` defaults to `feed_every > 1`; a curriculum that starts at K 1 sets it."""
+        replaces). `fed` defaults to `feed_every > 1`; a curriculum that starts at K 1 sets it.
+        `lookahead`: a `LookaheadHParams` (its terms' weights default to its `default_weights`)."""
         weights = dict(variant.default_loss_weights())
+        if lookahead is not None:
+            if feed_every > 1 or fed:
+                raise ValueError("multi-step feeding (feed_every > 1) and the look-ahead losses are two ways to train "
+                                 "on the model's own predictions; choose one")
+            weights.update(lookahead.default_weights())
         for key, value in (loss_weights or {}).items():
             if key not in weights:
                 raise ValueError(
@@ -157,7 +168,7 @@ class HParams:
         if feed_every < 1:
             raise ValueError(f"feed_every must be >= 1 (1: teacher forcing), got {feed_every}")
         return cls(opt, {k: f32(v) for k, v in weights.items()}, f32(diverge_threshold),
-                   jnp.asarray(feed_every, jnp.int32), fed=feed_every > 1 if fed is None else fed)
+                   jnp.asarray(feed_every, jnp.int32), lookahead, fed=feed_every > 1 if fed is None else fed)
 
     @property
     def lr(self) -> jax.Array:

@@ -23,6 +23,7 @@ import optax
 from cdrl.data.frames import as_float
 from cdrl.data.stream import Chunk
 from cdrl.models.base import StepInput, Variant
+from cdrl.training import lookahead
 from cdrl.training.monitor import NormRatioState, group_names
 from cdrl.training.optim import HParams, OptHParams, init_opt_state, make_optimizer
 
@@ -50,17 +51,31 @@ def run_once(fn, *args, static_argnums: tuple[int, ...] = ()):
     return compiled(*[a for i, a in enumerate(args) if i not in static_argnums])
 
 
-def init_params(variant: Variant, key: jax.Array):
-    """The variant's initial parameters from `key` (or stacked, from a stack of keys)."""
-    return run_once(jax.vmap(variant.init) if key.ndim > 1 else variant.init, key)
+def init_params(variant: Variant, key: jax.Array, heads: lookahead.LookaheadHParams | None = None):
+    """The variant's initial parameters from `key` (or stacked, from a stack of keys), with the
+    look-ahead heads where `heads` is given."""
+    init = functools.partial(_init_with_heads, variant, heads)
+    return run_once(jax.vmap(init) if key.ndim > 1 else init, key)
+
+
+def _init_with_heads(variant: Variant, heads, key):
+    return lookahead.with_heads(variant, variant.init(key), key, heads)
+
+
+def init_opt_states(hp: HParams, params):
+    """The optimiser state of `params`: the model's, and with look-ahead heads the pair of the
+    model's and the heads' own (`LookaheadHParams.head_opt`)."""
+    if hp.lookahead is None:
+        return init_opt_state(hp.opt, params)
+    return init_opt_state(hp.opt, params), init_opt_state(hp.lookahead.head_opt, params["lookahead"])
 
 
 def init_state(variant: Variant, key: jax.Array, batch: int, hp: HParams | None = None) -> TrainState:
-    params = init_params(variant, key)
     hp = hp if hp is not None else HParams.create(variant)
+    params = init_params(variant, key, hp.lookahead)
     return TrainState(
         params=params,
-        opt_state=init_opt_state(hp.opt, params),
+        opt_state=init_opt_states(hp, params),
         carry=variant.init_carry(batch),
         step=jnp.zeros((), jnp.int32),
     )
@@ -78,12 +93,18 @@ def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
     """
     carry = jax.lax.stop_gradient(carry)
     xs = step_inputs(chunk)
+    next_obs = as_float(chunk.next_obs)
     if hp.fed:  # multi-step training: real frames every `feed_every` steps, own predictions between
         t = jnp.arange(xs.is_first.shape[0])[:, None]
         carry, outs = variant.unroll_fed(params, carry, xs, (t % hp.feed_every == 0) | xs.is_first)
+    elif hp.lookahead is not None:  # every step's carry, where the imagined steps start
+        carry, outs, carries = variant.unroll_states(params, carry, xs)
     else:
         carry, outs = variant.unroll(params, carry, xs)
-    terms = variant.loss_terms(params, xs, outs, as_float(chunk.next_obs), chunk.reward)
+    terms = variant.loss_terms(params, xs, outs, next_obs, chunk.reward)
+    if hp.lookahead is not None:
+        terms.update(lookahead.lookahead_terms(variant, params, hp.lookahead, xs, outs, carries, next_obs,
+                                               chunk.reward))
     missing = set(terms) ^ set(hp.loss_weights)
     if missing:
         raise ValueError(f"loss weights and terms differ for {variant.name!r}: {sorted(missing)}")
@@ -124,11 +145,33 @@ def guarded_update(opt: OptHParams, threshold: jax.Array, params, opt_state, gra
     return keep(new_params, params), keep(new_opt_state, opt_state), metrics
 
 
+def heads_apart_update(hp: HParams, params, opt_state, grads, loss: jax.Array):
+    """`guarded_update` of a model with look-ahead heads: the model's optimiser moves the
+    model, the heads' own (`LookaheadHParams.head_opt`) moves the heads, then the value's target
+    copy follows its head (`lookahead.update_target`). Either refusing refuses both.
+    `opt_state` is the pair of `init_opt_states`."""
+    model_state, heads_state = opt_state
+    model_grads = {**grads, "lookahead": jax.tree.map(jnp.zeros_like, grads["lookahead"])}
+    new, new_model_state, guard = guarded_update(hp.opt, hp.diverge_threshold, params, model_state, model_grads,
+                                                 loss)
+    heads, new_heads_state, heads_guard = guarded_update(hp.lookahead.head_opt, hp.diverge_threshold,
+                                                         params["lookahead"], heads_state, grads["lookahead"], loss)
+    new = lookahead.update_target({**new, "lookahead": heads}, hp.lookahead)
+    diverged = guard["diverged"] | heads_guard["diverged"]
+    keep = lambda n, o: jax.tree.map(lambda a, b: jnp.where(diverged, b, a), n, o)  # noqa: E731
+    guard = {**guard, "finite": guard["finite"] & heads_guard["finite"], "diverged": diverged}
+    return keep(new, params), keep((new_model_state, new_heads_state), opt_state), guard
+
+
 def train_step_fn(variant: Variant, state: TrainState, hp: HParams, chunk: Chunk):
     """The un-jitted train step (for `vmap`/`scan` compositions); see `train_step`."""
     grad_fn = jax.value_and_grad(functools.partial(chunk_loss, variant), has_aux=True)
     (loss, (carry, terms, _)), grads = grad_fn(state.params, state.carry, hp, chunk)
-    params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, state.params, state.opt_state, grads, loss)
+    if hp.lookahead is None:
+        params, opt_state, guard = guarded_update(hp.opt, hp.diverge_threshold, state.params, state.opt_state, grads,
+                                                  loss)
+    else:
+        params, opt_state, guard = heads_apart_update(hp, state.params, state.opt_state, grads, loss)
     # A refused step leaves the whole state as it was, the streams' carries included.
     carry = jax.tree.map(lambda n, o: jnp.where(guard["diverged"], o, n), carry, state.carry)
     step = state.step + jnp.where(guard["diverged"], 0, 1)

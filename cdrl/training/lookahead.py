@@ -1,0 +1,290 @@
+"""Losses over a few imagined steps, and the heads that read the model's state.
+
+One-step, teacher-forced training teaches a model to predict the next frame from a real one.
+Imagination feeds it its own predictions, which it never saw in training. These losses train
+that path, as TD-MPC2 and MuZero train their latent dynamics over a few unrolled steps:
+
+1. the chunk is unrolled teacher-forced, as `chunk_loss` does, keeping the carry of every step;
+2. from every `stride`-th step s, the model imagines `steps` K more steps
+   (`Variant.imagine_step`: fed its own predicted frame, or a zero error for closed loop −),
+   taking the recorded buttons a_{s+1} .. a_{s+K};
+3. imagined step k is scored against the real o_{s+k+1} and r_{s+k+1} (frame BCE and the
+   variant's reward MSE), while it stays inside the chunk and its episode.
+
+Three heads read the model's state h (`Variant.features`) at every real step and every
+imagined one. They live in `params["lookahead"]`:
+
+- `reward`: r_{t+1} as a two-hot distribution over symlog-spaced bins (DreamerV3);
+- `cont`: the logit that the episode goes on after the step;
+- `value`: the λ-return from the state, two-hot as the reward. Its targets are real
+  λ-returns of the chunk's rewards, bootstrapped by a slow copy of the head (`value_target`,
+  an exponential moving average of `value`, `update_target`).
+
+The heads' gradient into the model is scaled by `head_grad` (`scale_grad`): at full scale a
+reward loss's gradient into the core is hundreds of times the frame BCE's, which holds the
+frames at their mean.
+"""
+from __future__ import annotations
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from cdrl.models import nets
+from cdrl.models.base import StepInput, Variant, elementwise_bce
+from cdrl.training.optim import OptHParams
+
+# The names of the look-ahead loss terms (each with a weight of the same name in `HParams`).
+TERMS = ("imag_obs_bce", "imag_reward_mse", "reward_twohot", "cont_bce", "value_twohot")
+# Their metrics beside them (weight 0): the heads' expected values against their targets.
+METRICS = ("reward_head_mse", "value_mse")
+DEFAULT_WEIGHTS = {"imag_obs_bce": 1.0, "imag_reward_mse": 1.0, "reward_twohot": 1.0, "cont_bce": 1.0,
+                   "value_twohot": 1.0, "reward_head_mse": 0.0, "value_mse": 0.0}
+
+
+@flax.struct.dataclass
+class LookaheadHParams:
+    """The look-ahead's numbers. Static: `steps` K imagined from every `stride`-th real step,
+    the heads' `bins` over symlog values in [-`limit`, `limit`] and their `hidden` width.
+    Traced: the heads' own optimiser `head_opt`, the discount `gamma` and `lam` of the value's
+    λ-returns, the target head's EMA `target_decay`, and `head_grad`, the scale of the heads'
+    gradient into the model. The terms' weights are `HParams.loss_weights`'s (`default_weights`)."""
+
+    head_opt: OptHParams
+    gamma: jax.Array
+    lam: jax.Array
+    target_decay: jax.Array
+    head_grad: jax.Array
+    steps: int = flax.struct.field(pytree_node=False, default=3)
+    stride: int = flax.struct.field(pytree_node=False, default=3)
+    bins: int = flax.struct.field(pytree_node=False, default=41)
+    limit: float = flax.struct.field(pytree_node=False, default=4.0)
+    hidden: int = flax.struct.field(pytree_node=False, default=64)
+
+    @classmethod
+    def create(cls, steps: int = 3, stride: int | None = None, head_opt: OptHParams | None = None,
+               gamma: float = 0.99, lam: float = 0.95, target_decay: float = 0.98, head_grad: float = 0.01,
+               bins: int = 41, limit: float = 4.0, hidden: int = 64) -> "LookaheadHParams":
+        """`stride` defaults to `steps`: K imagined steps from every K-th real step cost about
+        one more pass over the chunk. `head_opt` defaults to Adam at 3e-4, the gradient's norm
+        clipped at 100."""
+        stride = steps if stride is None else stride
+        if steps < 1 or stride < 1:
+            raise ValueError(f"look-ahead steps and stride must be >= 1, got {steps} and {stride}")
+        if bins < 2 or limit <= 0:
+            raise ValueError(f"two-hot needs bins >= 2 and limit > 0, got {bins} and {limit}")
+        f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        head_opt = head_opt if head_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
+        return cls(head_opt, f32(gamma), f32(lam), f32(target_decay), f32(head_grad), steps=steps, stride=stride, bins=bins,
+                   limit=limit, hidden=hidden)
+
+    @staticmethod
+    def default_weights() -> dict[str, float]:
+        """The weight of every look-ahead term, by name (`TERMS`, then the `METRICS` at 0)."""
+        return dict(DEFAULT_WEIGHTS)
+
+    @property
+    def bin_values(self) -> jax.Array:
+        """The bins' centres in symlog space, evenly spaced from -limit to limit."""
+        return jnp.linspace(-self.limit, self.limit, self.bins)
+
+
+# --------------------------------------------------------------------------- two-hot over symlog bins
+
+
+def symlog(x: jax.Array) -> jax.Array:
+    return jnp.sign(x) * jnp.log1p(jnp.abs(x))
+
+
+def symexp(x: jax.Array) -> jax.Array:
+    return jnp.sign(x) * jnp.expm1(jnp.abs(x))
+
+
+def two_hot(y: jax.Array, bins: jax.Array) -> jax.Array:
+    """`[..., N]`: y (clipped to the bins) split between its two nearest `bins`, each weighted by
+    its nearness, so that the weights sum to 1 and their mean over the bins is y."""
+    y = jnp.clip(y, bins[0], bins[-1])
+    low = jnp.clip(jnp.searchsorted(bins, y, side="right") - 1, 0, bins.shape[0] - 2)
+    upper = (y - bins[low]) / (bins[low + 1] - bins[low])
+    n = bins.shape[0]
+    return jax.nn.one_hot(low, n) * (1.0 - upper)[..., None] + jax.nn.one_hot(low + 1, n) * upper[..., None]
+
+
+def two_hot_loss(logits: jax.Array, target: jax.Array, bins: jax.Array) -> jax.Array:
+    """Cross-entropy of softmax(`logits`) against the two-hot code of symlog(`target`)."""
+    return -jnp.sum(two_hot(symlog(target), bins) * jax.nn.log_softmax(logits), axis=-1)
+
+
+def expected(logits: jax.Array, bins: jax.Array) -> jax.Array:
+    """The value a two-hot head predicts: symexp of the bins' mean under softmax(`logits`)."""
+    return symexp(jnp.sum(jax.nn.softmax(logits) * bins, axis=-1))
+
+
+# --------------------------------------------------------------------------- the heads
+
+
+def init_heads(key: jax.Array, features: int, hp: LookaheadHParams) -> dict:
+    """The reward, continuation and value heads (MLPs of one hidden layer on h) and the value's
+    target copy. The two-hot heads' last layers start at zero: they predict 0 at first."""
+    k_reward, k_cont, k_value = jax.random.split(key, 3)
+
+    def head(k, out, zero_last):
+        p = nets.init_mlp(k, (features, hp.hidden, out), final_selu=False)
+        if zero_last:
+            p["dense1"] = jax.tree.map(jnp.zeros_like, p["dense1"])
+        return p
+
+    value = head(k_value, hp.bins, True)
+    return {"reward": head(k_reward, hp.bins, True), "cont": head(k_cont, 1, False), "value": value,
+            "value_target": jax.tree.map(jnp.copy, value)}
+
+
+def with_heads(variant: Variant, params: dict, key: jax.Array, hp: LookaheadHParams | None) -> dict:
+    """`params` with the look-ahead heads added (unchanged when `hp` is None)."""
+    if hp is None:
+        return params
+    if not variant.has_controller:
+        raise ValueError(f"the look-ahead losses imagine through a model's own actions; variant {variant.name!r} "
+                         "has none (action_loop, reward_prediction or final_proposal)")
+    return {**params, "lookahead": init_heads(jax.random.fold_in(key, 7), variant.arch.lstm_size, hp)}
+
+
+def scale_grad(x: jax.Array, scale: jax.Array) -> jax.Array:
+    """x, its gradient multiplied by `scale` on the way back."""
+    return scale * x + jax.lax.stop_gradient((1.0 - scale) * x)
+
+
+def value(heads: dict, h: jax.Array, hp: LookaheadHParams, target: bool = False) -> jax.Array:
+    """The value head's expected λ-return from states h `[..., F]` (`target`: the slow copy's)."""
+    return expected(nets.mlp(heads["value_target" if target else "value"], h, final_selu=False), hp.bin_values)
+
+
+def reward(heads: dict, h: jax.Array, hp: LookaheadHParams) -> jax.Array:
+    """The reward head's expected r_{t+1} from states h."""
+    return expected(nets.mlp(heads["reward"], h, final_selu=False), hp.bin_values)
+
+
+def update_target(params: dict, hp: LookaheadHParams | None) -> dict:
+    """`params` with the value's target copy moved towards the value head:
+    target <- decay target + (1 - decay) value."""
+    if hp is None:
+        return params
+    heads = params["lookahead"]
+    target = jax.tree.map(lambda t, v: hp.target_decay * t + (1.0 - hp.target_decay) * v, heads["value_target"],
+                          heads["value"])
+    return {**params, "lookahead": {**heads, "value_target": target}}
+
+
+def head_mask(params: dict) -> dict:
+    """1 on the look-ahead heads' parameters, 0 elsewhere (a pytree like `params`)."""
+    return {k: jax.tree.map(jnp.ones_like if k == "lookahead" else jnp.zeros_like, v) for k, v in params.items()}
+
+
+# --------------------------------------------------------------------------- returns and masks
+
+
+def lambda_returns(rewards, values, last, gamma, lam, not_done=None):
+    """R_k = r_k + γ d_k ((1 - λ) V_{k+1} + λ R_{k+1}), R_H = `last`: λ-returns of `[H, N]`
+    rewards with the values V_1 .. V_H after each step; `not_done` d_k (default 1) is 0 where the
+    episode ended with r_k, which then bootstraps nothing."""
+    not_done = jnp.ones_like(rewards) if not_done is None else jnp.broadcast_to(not_done, rewards.shape)
+
+    def body(nxt, x):
+        r, v_next, nd = x
+        ret = r + gamma * nd * ((1.0 - lam) * v_next + lam * nxt)
+        return ret, ret
+
+    _, rets = jax.lax.scan(body, last, (rewards, values, not_done), reverse=True)
+    return rets
+
+
+def targets(is_first: jax.Array, rewards: jax.Array, target_values: jax.Array, hp: LookaheadHParams):
+    """Per real step t of a chunk `[T, B]`: whether the episode goes on after it (`cont`, known
+    for t < T - 1), and the λ-return from its state (`ret`, known for t < T - 1: the last step's
+    is the bootstrap), with `known` masks for both. `target_values` are the slow head's values
+    after every step."""
+    ended = is_first[1:].astype(jnp.float32)  # o_{t+1} starts a new episode: step t ended one
+    cont = jnp.concatenate([1.0 - ended, jnp.ones_like(ended[:1])])
+    ret = lambda_returns(rewards[:-1], target_values[1:], target_values[-1], hp.gamma, hp.lam, 1.0 - ended)
+    ret = jnp.concatenate([ret, target_values[-1:]])
+    known = jnp.arange(is_first.shape[0])[:, None] < is_first.shape[0] - 1
+    return cont, ret, jnp.broadcast_to(known, is_first.shape)
+
+
+def imagined_index(num_steps: int, hp: LookaheadHParams):
+    """The imagined steps' real indices: `starts` [S] (every `stride`-th step) and `index`
+    [S, K], the real step s + k that imagined step k from start s stands for (clipped to the
+    chunk; `inside` [S, K] says where it is not)."""
+    starts = jnp.arange(0, num_steps, hp.stride)
+    index = starts[:, None] + jnp.arange(1, hp.steps + 1)[None, :]
+    return starts, jnp.minimum(index, num_steps - 1), index < num_steps
+
+
+def same_episode(is_first: jax.Array, starts: jax.Array, hp: LookaheadHParams) -> jax.Array:
+    """[S, K, B]: no episode starts between real step s and s + k (both included after s)."""
+    padded = jnp.concatenate([is_first, jnp.ones((hp.steps,) + is_first.shape[1:], bool)])
+    window = jax.vmap(lambda s: jax.lax.dynamic_slice_in_dim(padded, s + 1, hp.steps))(starts)  # [S, K, B]
+    return jnp.cumsum(window.astype(jnp.int32), axis=1) == 0
+
+
+# --------------------------------------------------------------------------- the losses
+
+
+def _mean(x: jax.Array, mask: jax.Array) -> jax.Array:
+    mask = jnp.broadcast_to(mask, x.shape).astype(jnp.float32)
+    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def imagine_from(variant: Variant, params, carries, frames, actions):
+    """K imagined steps from each start: `carries` `[S, B, ...]`, the first fed frame `frames`
+    `[S, B, H, W]` (the real step's prediction) and the buttons `actions` `[S, K, B, A]`. Returns
+    per step `[S, K, B, ...]`: frame logits, the variant's reward r̃ (0 when it has none) and h."""
+
+    def one(carry, frame, acts):
+        def body(c, a):
+            carry, frame = c
+            carry, out = variant.imagine_step(params, carry, frame, a)
+            logits = out["logits"] if "logits" in out else variant.decode(params, out["pred_code"])
+            r = out["reward"] if "reward" in out else jnp.zeros(a.shape[:1])
+            return (carry, jax.nn.sigmoid(logits)), (logits, r, variant.features(carry))
+
+        return jax.lax.scan(body, (carry, frame), acts)[1]
+
+    return jax.vmap(one)(carries, frames, actions)
+
+
+def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInput, outs, carries,
+                    next_obs: jax.Array, rewards: jax.Array) -> dict:
+    """The look-ahead's terms (`TERMS` and `METRICS`) of one chunk, from its teacher-forced
+    outputs `outs` and the carry after every step `carries` (`[T, B, ...]`)."""
+    heads = params["lookahead"]
+    bins = hp.bin_values
+    steps_t = xs.is_first.shape[0]
+    starts, index, inside = imagined_index(steps_t, hp)
+    valid = inside[:, :, None] & same_episode(xs.is_first, starts, hp)  # [S, K, B]
+
+    pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
+    logits, imag_r, imag_h = imagine_from(variant, params, pick(carries, starts),
+                                          jax.nn.sigmoid(outs["logits"][starts]), xs.action[index])
+    pixel = jnp.mean(elementwise_bce(logits, next_obs[index]), axis=(-2, -1))
+    terms = {"imag_obs_bce": _mean(pixel, valid),
+             "imag_reward_mse": _mean(jnp.square(imag_r - rewards[index]), valid)}
+
+    real_h = variant.features(carries)  # [T, B, F]
+    cont, ret, known = targets(xs.is_first, rewards, value(heads, jax.lax.stop_gradient(real_h), hp, target=True), hp)
+    ret = jax.lax.stop_gradient(ret)
+    # The heads see the real steps [T, B] and the imagined ones [S * K, B], side by side.
+    h = scale_grad(jnp.concatenate([real_h, imag_h.reshape((-1,) + imag_h.shape[2:])]), hp.head_grad)
+    flat = lambda x: jnp.concatenate([x, x[index].reshape((-1,) + x.shape[1:])])  # noqa: E731
+    mask = jnp.concatenate([jnp.ones_like(xs.is_first), valid.reshape((-1,) + valid.shape[2:])])
+    r_logits = nets.mlp(heads["reward"], h, final_selu=False)
+    c_logits = nets.mlp(heads["cont"], h, final_selu=False)[..., 0]
+    v_logits = nets.mlp(heads["value"], h, final_selu=False)
+    r_target, c_target, v_target, v_known = flat(rewards), flat(cont), flat(ret), flat(known)
+    terms["reward_twohot"] = _mean(two_hot_loss(r_logits, r_target, bins), mask)
+    terms["cont_bce"] = _mean(elementwise_bce(c_logits, c_target), mask & v_known)
+    terms["value_twohot"] = _mean(two_hot_loss(v_logits, v_target, bins), mask & v_known)
+    terms["reward_head_mse"] = _mean(jnp.square(expected(r_logits, bins) - r_target), mask)
+    terms["value_mse"] = _mean(jnp.square(expected(v_logits, bins) - v_target), mask & v_known)
+    return terms
+

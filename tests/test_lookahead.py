@@ -1,0 +1,216 @@
+"""The look-ahead losses (`cdrl.training.lookahead`) against plain written-out loops: two-hot
+codes, and every term of a chunk computed start by start and step by step in Python;
+the heads' own optimiser and the target copy."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdrl.cli import main as cli_main
+from cdrl.data.stream import Chunk
+from cdrl.models import TINY, StepInput, make_variant
+from cdrl.training import lookahead as la
+from cdrl.training.optim import HParams
+from cdrl.training.step import chunk_loss, init_state, train_step
+
+T, B = 7, 2
+
+
+def _chunk(seed=0):
+    k = jax.random.split(jax.random.PRNGKey(seed), 4)
+    frames = jax.random.uniform(k[0], (T + 1, B, TINY.image_size, TINY.image_size))
+    is_first = np.zeros((T, B), bool)
+    is_first[0] = True
+    is_first[4, 1] = True  # stream 1 starts a new episode at step 4
+    return Chunk(obs=frames[:-1], next_obs=frames[1:],
+                 action=(jax.random.uniform(k[1], (T, B, 3)) > 0.5).astype(jnp.float32),
+                 reward=jnp.round(jax.random.normal(k[2], (T, B)), 1), is_first=jnp.asarray(is_first))
+
+
+def test_two_hot_puts_its_mass_on_the_two_nearest_bins_and_keeps_the_mean():
+    bins = jnp.linspace(-2.0, 2.0, 5)  # -2 -1 0 1 2
+    code = np.asarray(la.two_hot(jnp.asarray([0.25, -1.0, 7.0, -9.0]), bins))
+    np.testing.assert_allclose(code[0], [0, 0, 0.75, 0.25, 0], atol=1e-6)
+    np.testing.assert_allclose(code[1], [0, 1, 0, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(code[2], [0, 0, 0, 0, 1], atol=1e-6)  # clipped to the ends
+    np.testing.assert_allclose(code[3], [1, 0, 0, 0, 0], atol=1e-6)
+    y = jnp.linspace(-1.9, 1.9, 17)
+    np.testing.assert_allclose(la.two_hot(y, bins) @ bins, y, atol=1e-5)
+
+
+def test_a_head_that_puts_its_logits_on_the_two_hot_code_predicts_the_value():
+    bins = la.LookaheadHParams.create().bin_values
+    x = jnp.asarray([-3.0, -0.5, 0.0, 0.5, 12.0])
+    logits = jnp.log(la.two_hot(la.symlog(x), bins) + 1e-12)
+    np.testing.assert_allclose(la.expected(logits, bins), x, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(la.symexp(la.symlog(x)), x, rtol=1e-6)
+
+
+def _by_hand(variant, params, hp, chunk, weights):
+    """Every look-ahead term of `chunk`, start by start, step by step, with Python loops."""
+    heads = params["lookahead"]
+    bins = np.asarray(hp.bin_values)
+    mlp = lambda p, h: np.asarray(jnp.asarray(  # noqa: E731
+        jax.nn.selu(h @ p["dense0"]["kernel"] + p["dense0"]["bias"]) @ p["dense1"]["kernel"] + p["dense1"]["bias"]))
+
+    def softmax(z):
+        e = np.exp(z - z.max())
+        return e / e.sum()
+
+    def twohot_ce(z, y):
+        s = np.sign(y) * np.log1p(abs(y))
+        s = min(max(s, bins[0]), bins[-1])
+        i = min(int(np.searchsorted(bins, s, side="right")) - 1, len(bins) - 2)
+        w = (s - bins[i]) / (bins[i + 1] - bins[i])
+        logp = np.log(softmax(z))
+        return -((1 - w) * logp[i] + w * logp[i + 1])
+
+    def decode(z):
+        m = softmax(z) @ bins
+        return np.sign(m) * np.expm1(abs(m))
+
+    obs = np.asarray(chunk.obs)
+    nxt = np.asarray(chunk.next_obs)
+    act, rew, first = np.asarray(chunk.action), np.asarray(chunk.reward), np.asarray(chunk.is_first)
+    carry, carries, preds = variant.init_carry(B), [], []
+    for t in range(T):
+        carry, out = variant.step(params, carry, StepInput(obs=jnp.asarray(obs[t]), action=jnp.asarray(act[t]),
+                                                           is_first=jnp.asarray(first[t])))
+        carries.append(carry)
+        preds.append(jax.nn.sigmoid(out["logits"]))
+    real_h = np.stack([np.asarray(variant.features(c)) for c in carries])  # [T, B, F]
+    target_v = np.stack([[decode(mlp(heads["value_target"], real_h[t, b])) for b in range(B)] for t in range(T)])
+    ret = np.zeros((T, B))
+    for b in range(B):
+        ret[T - 1, b] = target_v[T - 1, b]
+        for t in reversed(range(T - 1)):
+            goes_on = 0.0 if first[t + 1, b] else 1.0
+            ret[t, b] = rew[t, b] + hp.gamma * goes_on * ((1 - hp.lam) * target_v[t + 1, b] + hp.lam * ret[t + 1, b])
+    # (h, reward target, continuation target or None, return target or None) of every scored state
+    scored = [(real_h[t, b], rew[t, b], None if t == T - 1 else float(not first[t + 1, b]),
+               None if t == T - 1 else ret[t, b]) for t in range(T) for b in range(B)]
+    imag_bce, imag_mse = [], []
+    for s in range(0, T, hp.stride):
+        for b in range(B):
+            c = jax.tree.map(lambda x: x[b:b + 1], carries[s])
+            frame = preds[s][b:b + 1]
+            for k in range(1, hp.steps + 1):
+                i = s + k
+                if i >= T or first[s + 1:i + 1, b].any():
+                    break
+                c, out = variant.imagine_step(params, c, frame, jnp.asarray(act[i, b][None]))
+                logits = out["logits"] if "logits" in out else variant.decode(params, out["pred_code"])
+                frame = jax.nn.sigmoid(logits)
+                lg, target = np.asarray(logits[0], np.float64), nxt[i, b]
+                imag_bce.append(np.mean(np.logaddexp(0, lg) - target * lg))
+                imag_mse.append((float(out["reward"][0]) - rew[i, b]) ** 2)
+                h = np.asarray(variant.features(c))[0]
+                scored.append((h, rew[i, b], None if i == T - 1 else float(not first[i + 1, b]),
+                               None if i == T - 1 else ret[i, b]))
+    r_ce, c_bce, v_ce, r_mse, v_mse = [], [], [], [], []
+    for h, r, cont, ret_t in scored:
+        zr, zc, zv = mlp(heads["reward"], h), mlp(heads["cont"], h)[0], mlp(heads["value"], h)
+        r_ce.append(twohot_ce(zr, r))
+        r_mse.append((decode(zr) - r) ** 2)
+        if cont is not None:
+            c_bce.append(np.logaddexp(0, zc) - cont * zc)
+            v_ce.append(twohot_ce(zv, ret_t))
+            v_mse.append((decode(zv) - ret_t) ** 2)
+    return {"imag_obs_bce": np.mean(imag_bce), "imag_reward_mse": np.mean(imag_mse), "reward_twohot": np.mean(r_ce),
+            "cont_bce": np.mean(c_bce), "value_twohot": np.mean(v_ce), "reward_head_mse": np.mean(r_mse),
+            "value_mse": np.mean(v_mse)}
+
+
+@pytest.mark.parametrize("name,steps,stride", [("reward_prediction", 3, 2), ("final_proposal", 2, 3)])
+def test_every_term_equals_a_plain_loop_over_starts_and_steps(name, steps, stride):
+    """Imagined steps stop at the chunk's end and at an episode start; the value's targets are
+    λ-returns of the target head's values on the real states; the heads score the real steps and
+    every imagined one."""
+    variant = make_variant(name, TINY)
+    hp = la.LookaheadHParams.create(steps=steps, stride=stride, gamma=0.9, lam=0.8)
+    params = la.with_heads(variant, variant.init(jax.random.PRNGKey(3)), jax.random.PRNGKey(4), hp)
+    # non-zero heads, and a target copy that differs from the head, so every path counts
+    params["lookahead"] = jax.tree.map(lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(x.size), x.shape),
+                                       params["lookahead"])
+    chunk = _chunk()
+    hparams = HParams.create(variant, lookahead=hp)
+    _, (_, terms, _) = chunk_loss(variant, params, variant.init_carry(B), hparams, chunk)
+    want = _by_hand(variant, params, hp, chunk, hparams.loss_weights)
+    for key, value in want.items():
+        np.testing.assert_allclose(float(terms[key]), value, rtol=2e-4, atol=1e-5, err_msg=key)
+
+
+def test_the_heads_gradient_into_the_model_is_scaled_by_head_grad():
+    """The heads' terms reach the model's parameters times `head_grad`, their own in full."""
+    variant = make_variant("reward_prediction", TINY)
+    chunk = _chunk(1)
+    only = {k: 0.0 for k in HParams.create(variant, lookahead=la.LookaheadHParams.create()).loss_weights}
+    only["value_twohot"] = 1.0
+
+    def grads(scale):
+        hp = la.LookaheadHParams.create(head_grad=scale)
+        params = la.with_heads(variant, variant.init(jax.random.PRNGKey(0)), jax.random.PRNGKey(1), hp)
+        params["lookahead"]["value"] = jax.tree.map(lambda x: x + 0.1, params["lookahead"]["value"])
+        hparams = HParams.create(variant, lookahead=hp, loss_weights=only)
+        return jax.grad(lambda p: chunk_loss(variant, p, variant.init_carry(B), hparams, chunk)[0])(params)
+
+    full, tenth = grads(1.0), grads(0.1)
+    lstm = lambda g: g["lstm"]["w_input"]  # noqa: E731
+    np.testing.assert_allclose(lstm(tenth), 0.1 * lstm(full), rtol=1e-4, atol=1e-9)
+    assert float(jnp.abs(lstm(full)).max()) > 0
+    for a, b in zip(jax.tree.leaves(full["lookahead"]["value"]), jax.tree.leaves(tenth["lookahead"]["value"])):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-9)
+
+
+def test_a_train_step_moves_the_heads_by_their_own_optimiser_and_the_target_after_them():
+    variant = make_variant("final_proposal", TINY)
+    hp = HParams.create(variant, lr=0.1, lookahead=la.LookaheadHParams.create(target_decay=0.5))
+    state = init_state(variant, jax.random.PRNGKey(0), B, hp)
+    before = jax.tree.map(np.asarray, state.params["lookahead"])  # the step donates the state
+    state, metrics = train_step(variant, state, hp, _chunk(2))
+    after = state.params["lookahead"]
+    assert not bool(metrics["diverged"])
+    # Adam's first step moves each weight by about its rate, whatever the gradient's size
+    moved = np.abs(np.asarray(after["cont"]["dense0"]["kernel"] - before["cont"]["dense0"]["kernel"]))
+    assert 0.5 * 3e-4 < np.median(moved[moved > 0]) < 1.5 * 3e-4
+    want = jax.tree.map(lambda t, v: 0.5 * t + 0.5 * v, before["value_target"], after["value"])
+    for a, b in zip(jax.tree.leaves(after["value_target"]), jax.tree.leaves(want)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    for term in la.TERMS:
+        assert np.isfinite(float(metrics["terms"][term]))
+
+
+def test_look_ahead_needs_a_model_that_acts_and_refuses_multi_step_feeding():
+    with pytest.raises(ValueError, match="has none"):
+        la.with_heads(make_variant("main", TINY), {}, jax.random.PRNGKey(0), la.LookaheadHParams.create())
+    with pytest.raises(ValueError, match="choose one"):
+        HParams.create(make_variant("final_proposal", TINY), feed_every=3, lookahead=la.LookaheadHParams.create())
+
+
+def _online(run_dir, *extra):
+    args = ["train", "--run-dir", str(run_dir), "--variant", "final_proposal", "--learner", "imagination_ac",
+            "--preset", "tiny", "--batch", "2", "--unroll", "6", "--replay", "4", "--model-updates", "1",
+            "--horizon", "3", "--lookahead-steps", "2", "--obs-norm", "none", "--eval-every", "0",
+            "--eval-episodes", "1", "--episode-steps", "20", "--checkpoint-every", "2", "--no-tensorboard",
+            "--no-compile-cache", *extra]
+    assert cli_main(args) == 0
+
+
+def test_an_online_run_with_the_look_ahead_resumes_exactly(tmp_path):
+    """The replay learners' model updates take the look-ahead terms (logged as model_<term>); a
+    run stopped at step 3 and resumed to 4 logs the numbers of a run of 4 steps straight."""
+    _online(tmp_path / "straight", "--steps", "4")
+    _online(tmp_path / "stopped", "--steps", "3")
+    assert cli_main(["train", "--resume", str(tmp_path / "stopped"), "--steps", "4", "--no-compile-cache"]) == 0
+    read = lambda d: [json.loads(line) for line in (d / "metrics.jsonl").read_text().splitlines()]  # noqa: E731
+    straight, resumed = read(tmp_path / "straight"), read(tmp_path / "stopped")
+    assert len(straight) == 4
+    for term in la.TERMS:
+        values = [r["terms"][f"model_{term}"] for r in straight]
+        assert np.all(np.isfinite(values)), term
+    assert [r["loss"] for r in resumed] == [r["loss"] for r in straight]
+    assert [r["terms"] for r in resumed] == [r["terms"] for r in straight]
+    config = json.loads((tmp_path / "stopped" / "config.json").read_text())
+    assert config["loss"]["lookahead_steps"] == 2
