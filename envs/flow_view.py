@@ -136,7 +136,11 @@ class FlowView:
 
 def make_game(camera: str = "north", **sizes) -> Slither | FlowView:
     """The game of `Slither`'s static `sizes` seen by `camera`: north or heading (the game's own
-    cameras), or flow (this wrapper around the north-up game)."""
+    cameras), flow (this wrapper around the north-up game) or turned (`envs.turned_view`)."""
     if camera == "flow":
         return FlowView(Slither(**sizes))
+    if camera == "turned":
+        from envs.turned_view import TurnedView  # that module imports this one
+
+        return TurnedView(Slither(**sizes))
     return Slither(camera=camera, **sizes)

@@ -391,15 +391,18 @@ def _compact(mask, budget):
     )[:budget]
 
 
-def render_obs(spec: RenderSpec, state, active, contrast=1.0):
+def render_obs(spec: RenderSpec, state, active, contrast=1.0, size: int = OBS_SIZE):
     """Pre-processed observation [150, 150] float32 in [0, 1], drawn directly.
 
     Same arguments as :func:`render_raw`.  Output pixel (i, j) stands for the raw
     pixels (2i .. 2i+1, 100 + 2j .. 100 + 2j+1); its centre in the world is
-    ``camera + (2j - 149, 2i - 149)``.
+    ``camera + (2j - 149, 2i - 149)``.  ``size`` (static) draws a larger or smaller
+    crop the same way: ``[size, size]``, the central ``2 size`` x ``2 size`` raw pixels
+    at half resolution, pixel centres at ``camera + (2j - (size - 1), 2i - (size - 1))``
+    (an even ``size`` keeps the 150 x 150 observation's pixel centres).
     """
-    n = OBS_SIZE
-    half_crop = CROP_SIZE / 2
+    n = int(size)
+    half_crop = float(n)
     cam_x = state.x[0, 0]
     cam_y = state.y[0, 0]
     grid = 2.0 * np.arange(n, dtype=np.float32) - (half_crop - 1)
@@ -415,7 +418,7 @@ def render_obs(spec: RenderSpec, state, active, contrast=1.0):
                                     wrap_delta(wy - cam_y, spec.arena_size))
         return (down + (half_crop - 1)) * 0.5, (right + (half_crop - 1)) * 0.5
 
-    span = float(CROP_SIZE)
+    span = 2.0 * half_crop
     px_, py_, pval, pcol = _pellet_window(spec, state, cam_x, cam_y, *_window_span(spec, span, span))
     pb = jnp.asarray(_brightness(PELLET_COLOURS))[pcol]
     pb = jnp.where(pval > 0, pb, 0.0)

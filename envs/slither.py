@@ -133,12 +133,21 @@ LEVELS: dict[str, dict[str, float]] = {
     "clean": {"background_contrast": 0.0, "pellet_init_fill": 0.1, "pellet_regrow_prob": 0.05},
     # the thesis-like game with its pellets drawn larger (see LEVEL_GAMES)
     "visible": {},
-    # the visible level seen by a camera that turns with the player (see LEVEL_GAMES)
-    "heading": {},
+    # the visible level seen by a camera that turns with the player's true heading (see LEVEL_GAMES)
+    "turned-true-visible": {},
     # the thesis level itself seen by that camera, its pellets as small (see LEVEL_GAMES)
-    "thesis-heading": {},
-    # the thesis level seen turned by the heading its north-up frames show (see LEVEL_GAMES)
-    "thesis-flow": {},
+    "turned-true": {},
+    # the thesis level drawn anew turned by the heading its north-up frames show (see LEVEL_GAMES)
+    "turned-redrawn": {},
+    # the thesis level, its north-up screen's pixels turned by that heading (see LEVEL_GAMES)
+    "turned": {},
+}
+
+# Old names of levels, kept so that runs and commands written under them still work: old -> new.
+LEVEL_ALIASES: dict[str, str] = {
+    "heading": "turned-true-visible",
+    "thesis-heading": "turned-true",
+    "thesis-flow": "turned-redrawn",
 }
 
 # Static drawing options of the levels that have any (`Slither` arguments, beside the level's
@@ -150,37 +159,51 @@ LEVEL_GAMES: dict[str, dict[str, float | str]] = {
     # about 2.5 pixels, 0.8 above the background. The physics are the thesis level's (pellets
     # are placed at least their radius + 1 from their cell's edges).
     "visible": {"pellet_radius": 6.0},
-    # the visible level's pellets, and a view that turns with the player, its heading up the
-    # screen: the same world and physics, but "the pellet ahead and to the left" is always the
-    # same place in the frame, wherever the snake heads. Behaviour cloning of the privileged
-    # policy from 51 200 frames of 64 x 64 plays +8.6 on held-out games here and +3.1 with the
-    # north-up camera (docs/controller.md).
-    "heading": {"pellet_radius": 6.0, "camera": "heading"},
-    # the thesis level, pellets and all, heading up the screen: what a north-up frame turned by
-    # the heading read off it shows (`envs.symmetry.turn_to_heading`)
-    "thesis-heading": {"camera": "heading"},
-    # the thesis level, each north-up frame turned so that the heading the optical flow between it
-    # and the frame before shows points up: `thesis-heading`'s view, made from the pixels alone
-    "thesis-flow": {"camera": "flow"},
+    # the visible level's pellets, and a view that turns with the player, its true heading up the
+    # screen (privileged: the game's state, not the pixels, says where it points): the same world
+    # and physics, but "the pellet ahead and to the left" is always the same place in the frame,
+    # wherever the snake heads. Behaviour cloning of the privileged policy from 51 200 frames of
+    # 64 x 64 plays +8.6 on held-out games here and +3.1 with the north-up camera
+    # (docs/controller.md).
+    "turned-true-visible": {"pellet_radius": 6.0, "camera": "heading"},
+    # the thesis level, pellets and all, its true heading up the screen
+    "turned-true": {"camera": "heading"},
+    # the thesis level drawn anew by the renderer at the heading the optical flow between the
+    # north-up frame and the one before shows: `turned-true`'s view at the heading read off the
+    # pixels (`envs.flow_view.FlowView`)
+    "turned-redrawn": {"camera": "flow"},
+    # the thesis level, the north-up screen's pixels turned by that heading (bilinear; blank where
+    # the screen ends): a view made from the pixels alone (`envs.turned_view.TurnedView`)
+    "turned": {"camera": "turned"},
 }
 
 
-def level_params(level: str, params: "SlitherParams | None" = None) -> "SlitherParams":
-    """``params`` (default: the defaults) with the overrides of level ``level``."""
+def canonical_level(level: str) -> str:
+    """A level's name today: ``level``, or the level an old name (`LEVEL_ALIASES`) stands for."""
+    return LEVEL_ALIASES.get(level, level)
+
+
+def _known_level(level: str) -> str:
+    level = canonical_level(level)
     if level not in LEVELS:
-        raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)}")
+        raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)} "
+                         f"(old names: {', '.join(f'{old} = {new}' for old, new in LEVEL_ALIASES.items())})")
+    return level
+
+
+def level_params(level: str, params: "SlitherParams | None" = None) -> "SlitherParams":
+    """``params`` (default: the defaults) with the overrides of level ``level`` (or its old name)."""
+    level = _known_level(level)
     params = SlitherParams() if params is None else params
     return canonical_params(params.replace(**LEVELS[level]))
 
 
 def level_game(level: str) -> "Slither":
-    """The game of level ``level``: :class:`Slither` with the level's static drawing options,
-    seen by the level's camera (`envs.flow_view.make_game`)."""
+    """The game of level ``level`` (or its old name): :class:`Slither` with the level's static
+    drawing options, seen by the level's camera (`envs.flow_view.make_game`)."""
     from envs.flow_view import make_game  # the wrapper module imports this one
 
-    if level not in LEVELS:
-        raise ValueError(f"unknown game level {level!r}; choose one of {sorted(LEVELS)}")
-    return make_game(**LEVEL_GAMES.get(level, {}))
+    return make_game(**LEVEL_GAMES.get(_known_level(level), {}))
 
 
 @struct.dataclass
@@ -281,8 +304,8 @@ def straight_body(head_x, head_y, heading, spacing, num_segments, arena_size):
     return wrap_position(x, arena_size), wrap_position(y, arena_size)
 
 
-# The game's cameras (the renderer's). The flow view is an observation wrapper around the north-up
-# game: `envs.flow_view`.
+# The game's cameras (the renderer's). The flow and turned views are observation wrappers around the
+# north-up game: `envs.flow_view`, `envs.turned_view`.
 CAMERAS = _render.CAMERAS
 
 
@@ -301,7 +324,8 @@ class Slither:
         :class:`envs.render.RenderSpec`).
       camera: ``"north"`` (the screen's axes are the world's, as in the thesis's game) or
         ``"heading"`` (the view turns with the player, its heading up the screen). The view a
-        pixel-only agent can make for itself is a wrapper: :class:`envs.flow_view.FlowView`.
+        pixel-only agent can make for itself is a wrapper: :class:`envs.turned_view.TurnedView`
+        (or :class:`envs.flow_view.FlowView`).
     """
 
     def __init__(

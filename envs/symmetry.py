@@ -90,21 +90,31 @@ def symmetrised_logits(logits: jax.Array) -> jax.Array:
     return jnp.mean(jax.vmap(transform_buttons)(logits, mirror), axis=0)
 
 
-def turn_to_heading(frames, heading_xy):
+def turn_to_heading(frames, heading_xy, size: int | None = None, blank: bool = False):
     """North-up frames ``[N, S, S]`` turned (bilinear) so that the direction ``heading_xy``
     ``[N, 2]`` (x right, y down the screen; any length) points up: the view the ``heading``
     camera shows, but for the corners the north-up frame does not hold (filled with its
     nearest edge pixel).  The output pixel at offsets (right q_x, down q_y) from the centre
     samples the input at q_x (-s, c) + q_y (-c, -s), with (c, s) the unit heading
-    (:func:`envs.render.view_axes`)."""
-    size = frames.shape[-1]
+    (:func:`envs.render.view_axes`).
+
+    ``size`` (static; default S): the side of the output, the central ``size`` x ``size`` of the
+    turned frame (a frame larger than the view holds the view's corners at any turn).  With
+    ``blank``, an output pixel whose sample lies outside the input's pixel centres (outside
+    [0, S - 1] along either axis) is 0 instead of the nearest edge pixel."""
+    side = frames.shape[-1]
+    size = side if size is None else int(size)
     q = jnp.arange(size, dtype=jnp.float32) - (size - 1) / 2
     qy, qx = jnp.meshgrid(q, q, indexing="ij")
 
     def one(frame, xy):
         c, s = xy / jnp.maximum(jnp.linalg.norm(xy), 1e-6)
-        rows, cols = c * qx - s * qy + (size - 1) / 2, -s * qx - c * qy + (size - 1) / 2
-        return jax.scipy.ndimage.map_coordinates(frame, [rows, cols], order=1, mode="nearest")
+        rows, cols = c * qx - s * qy + (side - 1) / 2, -s * qx - c * qy + (side - 1) / 2
+        turned = jax.scipy.ndimage.map_coordinates(frame, [rows, cols], order=1, mode="nearest")
+        if not blank:
+            return turned
+        inside = (rows >= 0) & (rows <= side - 1) & (cols >= 0) & (cols <= side - 1)
+        return jnp.where(inside, turned, 0.0)
 
     return jax.vmap(one)(frames, heading_xy)
 

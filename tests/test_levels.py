@@ -42,7 +42,7 @@ def test_contrast_blends_the_background_toward_its_mean(background_only):
 def test_levels_are_named_overrides():
     assert LEVELS["thesis"] == {}
     assert [RunConfig(level=name).level for name in LEVELS] == list(LEVELS)  # one list of levels: the game's
-    listed = "thesis, flat, sparse, clean, visible, heading, thesis-heading, thesis-flow"
+    listed = "thesis, flat, sparse, clean, visible, turned-true-visible, turned-true, turned-redrawn, turned"
     with pytest.raises(ValueError, match=f"level must be one of {listed}; got 'hard'"):
         RunConfig(level="hard")
     clean = level_params("clean")
@@ -105,20 +105,21 @@ def test_the_visible_level_draws_pellets_that_survive_the_small_preset(backgroun
     assert contrast["visible"] > 0.6 and contrast["thesis"] < 0.3 and contrast["thesis, small-max"] > 0.6, contrast
 
 
-def test_the_heading_level_is_the_visible_level_seen_by_a_turning_camera(tmp_path):
-    """Level `heading`: the visible level (the thesis level's physics), its camera turning with
-    the player, in the runs that play it and in the data a run collects."""
+def test_the_turned_true_visible_level_is_the_visible_level_seen_by_a_turning_camera(tmp_path):
+    """Level `turned-true-visible` (old name `heading`): the visible level (the thesis level's
+    physics), its camera turning with the player, in the runs that play it and in the data a run
+    collects."""
     from cdrl.runs.sources import run_game
 
-    game, params = run_game(RunConfig(level="heading"))
+    game, params = run_game(RunConfig(level="turned-true-visible"))
     visible, visible_params = run_game(RunConfig(level="visible"))
     assert game.spec.camera == "heading" and visible.spec.camera == "north"
     assert dataclasses.replace(game.spec, camera="north") == visible.spec and params == visible_params
     base = dict(preset="small", episodes=2, episode_steps=8, data="game", variant="main_action")
     first = {}
-    for level in ("visible", "heading"):
+    for level in ("visible", "turned-true-visible"):
         train, _ = load_episodes(RunConfig(level=level, **base), tmp_path)
         first[level] = train[0]
     # the same games and actions (the same seed), other frames
-    np.testing.assert_array_equal(first["visible"].actions, first["heading"].actions)
-    assert np.abs(first["visible"].frames.astype(int) - first["heading"].frames).mean() > 5
+    np.testing.assert_array_equal(first["visible"].actions, first["turned-true-visible"].actions)
+    assert np.abs(first["visible"].frames.astype(int) - first["turned-true-visible"].frames).mean() > 5

@@ -13,7 +13,7 @@ With `--augment d4` every minibatch frame is turned by a random quarter turn and
 the time, its turn buttons swapped where mirrored (`envs.symmetry`: the north-up game's
 symmetries); the network then also plays symmetrised (its logits averaged over the eight
 transforms of each frame, mapped back: exactly invariant). `--camera heading` plays the level
-with the camera that turns with the player (the `heading` level is `visible` seen so; this
+with the camera that turns with the player (level `turned-true-visible` is `visible` seen so; this
 gives the same camera with the level's own pellets).
 
 It measures how much of the steering a pixel policy of this size can learn with the answers
@@ -196,11 +196,11 @@ def main(argv=None) -> int:
     from cdrl.models.arch import PRESETS
     from cdrl.learners import ppo
     from envs import symmetry
-    from envs.slither import LEVEL_GAMES, Slither, level_game, level_params
+    from envs.slither import LEVEL_GAMES, Slither, canonical_level, level_game, level_params
 
     game = level_game(args.level)
     if args.camera is not None:
-        game = Slither(**{**LEVEL_GAMES.get(args.level, {}), "camera": args.camera})
+        game = Slither(**{**LEVEL_GAMES.get(canonical_level(args.level), {}), "camera": args.camera})
     env_params = level_params(args.level)
     arch = PRESETS["small"]
     start = time.time()

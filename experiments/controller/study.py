@@ -83,6 +83,7 @@ from cdrl.runs.online import restore_learner
 from cdrl.runs.rundir import RunDir
 from cdrl.runs.sources import load_episodes
 from cdrl.runs.train import train_run
+from envs.slither import canonical_level
 
 if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
@@ -309,6 +310,8 @@ def merge(parts: Sequence[dict]) -> dict:
         budget = {"max_filter": 1, **r["budget"]}
         if budget["preset"] in PRESET_ALIASES:  # an old name, written before --max-filter
             budget["preset"], budget["max_filter"] = PRESET_ALIASES[budget["preset"]]
+        if "level" in budget:  # a level's old name is its new one
+            budget["level"] = canonical_level(budget["level"])
         return json.loads(json.dumps({k: v for k, v in budget.items() if k not in ("seeds", "name")}))
 
     base = budget_of(first)
@@ -398,7 +401,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds (default: 0-4)")
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
                         help="configurations to run, in this order (default: all)")
-    parser.add_argument("--level", default="thesis", help="the game's level (envs.slither.LEVELS; default: thesis)")
+    parser.add_argument("--level", default="thesis",
+                        help="the game's level (envs.slither.LEVELS, or an old name of one; default: thesis)")
     parser.add_argument("--preset", default=None,
                         help="the architecture preset (cdrl.models.PRESETS; default: the budget's, small for --full)")
     parser.add_argument("--max-filter", type=int, default=1,
@@ -416,7 +420,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR")
                       or tempfile.mkdtemp(prefix="cdrl-controller-xla-"))
     budget = BUDGETS["full" if args.full else "tiny" if args.quick else "default"]
-    budget = dataclasses.replace(budget, level=args.level, preset=args.preset or budget.preset,
+    budget = dataclasses.replace(budget, level=canonical_level(args.level), preset=args.preset or budget.preset,
                                  max_filter=args.max_filter)
     work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
     load_start = os.getloadavg()[0]
