@@ -149,7 +149,8 @@ def stats_episodes(cfg: RunConfig, cache_root: Path) -> Sequence[Episode]:
     split; for the built-in game, 8 behaviour-switching episodes of its level and game
     parameters collected with seed 0 (online runs too); synthetic episodes of seed 0."""
     if cfg.data == "game":
-        sample = dataclasses.replace(cfg, variant="main", episodes=8, seed=0, reward_balanced_weight=0.0)
+        sample = dataclasses.replace(cfg, variant="main", episodes=8, seed=0, reward_balanced_weight=0.0,
+                                     lookahead_steps=0)
     elif cfg.data == "synthetic":
         sample = dataclasses.replace(cfg, seed=0)
     else:
