@@ -105,8 +105,9 @@ def test_lr_search_over_seeds_probes_each_seed_and_needs_them_all(tmp_path):
 
 
 def test_sweep_cli_and_bad_input(tmp_path, capsys):
-    assert cli_main(["sweep", "--run-dir", str(tmp_path / "s"), "--variant", "final_proposal", "--preset", "tiny"]) == 2
-    assert "online" in capsys.readouterr().err
+    assert cli_main(["sweep", "--run-dir", str(tmp_path / "s"), "--variant", "final_proposal", "--preset", "tiny",
+                     "--devices", "2"]) == 2
+    assert "online sweep runs on one device" in capsys.readouterr().err
     with pytest.raises(ValueError, match="repeats a value of lr"):
         Grid(lr=(0.1, 0.1))
     with pytest.raises(ValueError, match="lr must be > 0"):

@@ -13,6 +13,9 @@ whole grid (`cdrl sweep` also draws every loss curve into `curves.png`:
 `cdrl.analysis.plots.plot_sweep`). `resume_sweep` (`cdrl sweep --resume DIR`) continues a
 killed sweep exactly from its last complete checkpoint (`cdrl.runs.sweepstate`).
 
+A learner that plays the game (`--learner`, a controller variant's or PPO) sweeps through
+`cdrl.runs.learner_sweep`: one device, no resume.
+
 `devices` (`cdrl sweep --devices N`, 0: all) lays the config axis over N devices, which may
 belong to several processes (`cdrl sweep --distributed`): each process then writes the run
 directories of the configurations it holds (config, logs, TensorBoard, the metadata of their
@@ -44,6 +47,7 @@ from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import all_or_none, allgather_json, is_primary, primary_first
 from cdrl.runs.grid import (GRID_FIELDS, Grid, SweepJob, held_configs, init_sweep,  # noqa: F401 - public names
                             make_streams, run_grid, stack, sweep_step, sweep_step_fn, take)
+from cdrl.runs.learner_sweep import format_learner_results, learner_sweep_run
 from cdrl.runs.rundir import RunDir, atomic_write_text
 from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, gather_progress, read_progress, read_sweep,
@@ -68,6 +72,11 @@ def sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress: bool |
     Returns one row per configuration (see `results.json`). The sweep directory and every
     configuration's directory are locked while it runs (`RunDir.lock`)."""
     run_dir = Path(run_dir)
+    if base.kind != "offline":  # a learner that plays the game: one process, one device
+        if (run_dir / "results.json").exists():
+            raise FileExistsError(f"{run_dir} already holds a sweep; pick another --run-dir")
+        grid.configs(base)
+        return learner_sweep_run(base, grid, run_dir, progress)
 
     def check() -> None:
         if (run_dir / "results.json").exists() or (run_dir / SWEEP_FILE).exists():
@@ -257,7 +266,9 @@ def _result_row(variant: Variant, cfg: RunConfig, run: RunDir, sink, params, epi
 
 
 def format_results(rows: Sequence[dict]) -> str:
-    """The sweep's rows as a Markdown table."""
+    """The sweep's rows as a Markdown table (an online sweep's: `format_learner_results`)."""
+    if rows and "learner" in rows[0]:
+        return format_learner_results(rows)
     head = ("| config | lr | momentum | seed | threshold | final train BCE | test BCE | copy-last BCE | entropy floor "
             "| excess ratio | max norm ratio | diverged |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
