@@ -155,10 +155,16 @@ def _cmd_lr_search(args) -> int:
 
 
 def _cmd_eval(args) -> int:
+    for name in ("games", "every"):
+        if getattr(args, name) < 1:
+            print(f"cdrl eval: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
+            return 2
     if args.policy:
         return _cmd_eval_policy(args)
+    if args.imagination:
+        return _cmd_eval_imagination(args)
     if not args.run_dirs:
-        print("cdrl eval: give RUN_DIR(s), or --policy RUN_DIR", file=sys.stderr)
+        print("cdrl eval: give RUN_DIR(s), --policy RUN_DIR or --imagination RUN_DIR", file=sys.stderr)
         return 2
     from cdrl.analysis.report import eval_runs
 
@@ -183,6 +189,21 @@ def _cmd_eval_policy(args) -> int:
         return 2
     print(format_table(rows))
     print(json.dumps(rows))
+    return 0
+
+
+def _cmd_eval_imagination(args) -> int:
+    from cdrl.analysis.imagination_video import imagination_report, summary
+
+    try:
+        result, written = imagination_report(Path(args.imagination), games=args.games, every=args.every,
+                                             out=args.out, video=not args.no_video)
+    except USER_ERRORS as exc:
+        print(f"cdrl eval: {exc}", file=sys.stderr)
+        return 2
+    print(summary(result))
+    for path in written:
+        print(f"wrote {path}")
     return 0
 
 
@@ -321,6 +342,18 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--policy", metavar="RUN_DIR", default=None,
                     help="play the controller of RUN_DIR against the random and behaviour-switching policies "
                          "on the same seeds: mean return with a 95%% CI, episode length (default: none)")
+    ev.add_argument("--imagination", metavar="RUN_DIR", default=None,
+                    help="whether the world model of RUN_DIR (a controller variant on the built-in game) imagines "
+                         "which way to steer: imagined against real returns of four button sequences from the "
+                         "states of privileged play; writes RUN_DIR/imagination.json and imagination.gif "
+                         "(docs/evaluation.md) (default: none)")
+    ev.add_argument("--games", type=int, default=32,
+                    help="with --imagination: games the privileged policy plays (default: 32)")
+    ev.add_argument("--every", type=int, default=10, help="with --imagination: steps between the starts (default: 10)")
+    ev.add_argument("--out", metavar="FILE", default=None,
+                    help="with --imagination: the JSON file (default: RUN_DIR/imagination.json)")
+    ev.add_argument("--no-video", action="store_true",
+                    help="with --imagination: write no RUN_DIR/imagination.gif of real and imagined frames")
     ev.set_defaults(func=_cmd_eval)
 
     plot = command("plot", help="write the thesis's figures of one or more runs as PNG files")

@@ -119,7 +119,7 @@ def test_lr_search_options_are_refused_by_name(stubbed, capsys, option):
                False, stubbed, capsys)
 
 
-@pytest.mark.parametrize("option", ["--episodes", "--horizon", "--context"])
+@pytest.mark.parametrize("option", ["--episodes", "--horizon", "--context", "--games", "--every"])
 def test_eval_options_are_refused_by_name(stubbed, capsys, option):
     for value in VALUES:  # before the run is read: R does not exist
         _check(["eval", "R", option, value], option[2:], False, stubbed, capsys)
@@ -155,7 +155,7 @@ def test_the_sweep_of_values_covers_every_numeric_option_of_every_command():
     assert numeric["train"] == numeric["sweep"] == run_options
     assert numeric["lr-search"] == (run_options - {"--lr", "--steps", "--diverge-threshold"}
                                     | {"--probe-steps", "--threshold", "--candidates"})
-    assert numeric["eval"] == {"--episodes", "--horizon", "--context"}
+    assert numeric["eval"] == {"--episodes", "--horizon", "--context", "--games", "--every"}
     assert numeric["collect"] == {"--episodes", "--seed", "--episode-steps", "--obs-size", "--crop", "--batch-size",
                                   "--devices", "--max-filter"}
     assert numeric["plot"] == numeric["variants"] == set()
@@ -181,6 +181,7 @@ def _bad_inputs(t):
         "sweep --resume of a file": (["sweep", "--resume", "file"], "sweep directory file is a file"),
         "eval of a garbage config": (["eval", "garbage"], "is not a valid run config"),
         "eval --policy of nothing": (["eval", "--policy", "nowhere"], "nowhere does not exist"),
+        "eval --imagination of nothing": (["eval", "--imagination", "nowhere"], "nowhere does not exist"),
         "plot of a file": (["plot", "file"], "run directory file is a file"),
         "plot of a NaN config": (["plot", "nan"], "lr must be a finite number"),
         "plot of metrics that are not records": (["plot", "records"], "line 1 is not a record of a step"),
