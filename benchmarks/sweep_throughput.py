@@ -27,6 +27,15 @@ committed results go to benchmarks/results/sweep_throughput.json).
     .venv/bin/python benchmarks/sweep_throughput.py               # small preset, B 1, 8 configs
     .venv/bin/python benchmarks/sweep_throughput.py --preset thesis --steps 2
     .venv/bin/python benchmarks/sweep_throughput.py --quick       # tiny preset, a smoke test
+
+With `--learner NAME` (`ppo`, `onpolicy_ac`, ...) it measures a sweep of a learner that plays the
+game instead: N seeds as lanes of `cdrl.runs.learner_sweep.learner_sweep_step` against the same N
+learners stepped one after another by `cdrl.learners.train_program` (B games x T steps each;
+defaults B 4, T 16, 2 steps per repeat; a learner with a world model trains final_proposal unless
+`--variant` names another). Frames are game frames played and learnt from; the compile times of
+both sides (and the lanes' init) are reported beside them; the target is 2x for any preset.
+
+    .venv/bin/python benchmarks/sweep_throughput.py --learner ppo --out benchmarks/results/sweep_throughput_ppo.json
 """
 from __future__ import annotations
 
@@ -58,6 +67,57 @@ def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
 # The target speed-up of a sweep over running its configurations one after another, by preset
 # and number of configurations.
 TARGETS = {("tiny", 8): 2.0, ("small", 8): 1.3, ("thesis", 8): 1.0}
+# The target of an 8-seed sweep of a learner that plays the game (issue 48), at any preset.
+LEARNER_TARGET = 2.0
+
+
+def timed(fn, *args):
+    """(fn(*args) with its metrics on the host, seconds)."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    jax.block_until_ready(out)
+    return out, time.perf_counter() - t0
+
+
+def learner_result(args) -> dict:
+    """The `--learner` measurement: N seeds swept against N runs one after another."""
+    from cdrl.learners import learner_class, train_program
+    from cdrl.runs.learner_sweep import LearnerSweepJob, learner_sweep_step
+
+    n, T, B = args.configs, args.unroll, args.batch
+    variant = args.variant if args.variant != "main" or not learner_class(args.learner).has_world_model \
+        else "final_proposal"
+    base = RunConfig(learner=args.learner, variant=variant, preset=args.preset, batch=B, unroll=T)
+    cfgs = Grid(seed=tuple(range(n))).configs(base)
+    job = LearnerSweepJob(cfgs)
+    (states, _), init_s = timed(job.init)
+    alive = job.alive
+    (states, alive, _), compile_sweep = timed(learner_sweep_step, job.learner, states, alive)
+    seq = [lrn.init(jax.random.PRNGKey(c.seed)) for lrn, c in zip(job.built, cfgs)]
+    (seq[0], _), compile_single = timed(train_program, job.built[0], seq[0])
+    for i in range(1, n):
+        seq[i], m = train_program(job.built[i], seq[i])
+        float(m["loss"])
+
+    frames = n * T * B * args.steps
+    seq_fps, sweep_fps = [], []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        for i in range(n):
+            for _ in range(args.steps):
+                seq[i], m = train_program(job.built[i], seq[i])
+                float(m["loss"])
+        seq_fps.append(frames / (time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+            states, alive, m = learner_sweep_step(job.learner, states, alive)
+            np.asarray(m["loss"])
+        sweep_fps.append(frames / (time.perf_counter() - t0))
+    return {"benchmark": "sweep_throughput", "learner": args.learner, "variant": variant, "preset": args.preset,
+            "configs": n, "swept": "seed", "batch": B, "unroll": T, "steps_per_repeat": args.steps,
+            "repeats": args.repeats, "lanes_alive": int(np.sum(np.asarray(alive))),
+            "seq_fps": seq_fps, "sweep_fps": sweep_fps, "compile_single_s": compile_single,
+            "compile_sweep_s": compile_sweep, "init_lanes_s": init_s, "target": LEARNER_TARGET}
 
 
 def main(argv=None) -> int:
@@ -71,12 +131,20 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="alternating repeats (default: 3)")
     parser.add_argument("--quick", action="store_true", help="a smoke test: tiny preset, T 8, 2 steps per repeat")
     parser.add_argument("--out", type=Path, default=None, help="also write the final JSON line to this file")
+    parser.add_argument("--learner", default=None,
+                        help="measure a sweep of this learner that plays the game over N seeds (default: none, offline)")
     args = parser.parse_args(argv)
     defaults = {"preset": "tiny", "unroll": 8, "steps": 2} if args.quick else {"preset": "small", "unroll": 32, "steps": 5}
+    if args.learner:
+        defaults = {**defaults, "unroll": 8 if args.quick else 16, "steps": 2}
+        if args.batch == 1:
+            args.batch = 4
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
     load_avg_start = os.getloadavg()[0]
+    if args.learner:
+        return report_learner(learner_result(args), load_avg_start, args.out)
 
     arch = preset(args.preset)
     variant = make_variant(args.variant, arch)
@@ -152,6 +220,35 @@ def main(argv=None) -> int:
           f"(compile {compile_single:.1f} s single, {compile_sweep:.1f} s sweep; "
           f"load {load_avg_start:.2f} -> {result['load_avg_end']:.2f})")
     emit(result, args.out)
+    return 0
+
+
+def report_learner(result: dict, load_avg_start: float, out: Path | None) -> int:
+    """Print and emit a `--learner` measurement with its per-repeat speed-ups."""
+    seq_fps, sweep_fps = result.pop("seq_fps"), result.pop("sweep_fps")
+    ratios = [sw / sq for sq, sw in zip(seq_fps, sweep_fps)]
+    r_spread = spread(ratios)
+    result.update({
+        "cpu_count": os.cpu_count(), "load_avg_start": load_avg_start,
+        "sequential_frames_per_s": float(np.median(seq_fps)), "sweep_frames_per_s": float(np.median(sweep_fps)),
+        "sequential_repeats": [round(x, 1) for x in seq_fps], "sweep_repeats": [round(x, 1) for x in sweep_fps],
+        "ratio_definition": "sweep frames/s / sequential frames/s of the same repeat (measured back to back)",
+        "ratio_repeats": [round(x, 4) for x in ratios],
+        "ratio_min": r_spread["min"], "ratio_median": r_spread["median"], "ratio_max": r_spread["max"],
+        "target_met": bool(r_spread["median"] >= result["target"]),
+        "target_met_all_repeats": bool(r_spread["min"] >= result["target"]),
+        "load_avg_end": os.getloadavg()[0],
+    })
+    result["speedup"] = result["sweep_frames_per_s"] / result["sequential_frames_per_s"]
+    warn_if_busy(result, load_avg_start, result["load_avg_end"])
+    print(f"{result['learner']} ({result['variant']}) {result['preset']} N={result['configs']} seeds "
+          f"B={result['batch']} T={result['unroll']}: one after another {result['sequential_frames_per_s']:.0f} "
+          f"frames/s, one vmapped sweep {result['sweep_frames_per_s']:.0f} frames/s: x{result['speedup']:.2f}; "
+          f"per-repeat median x{r_spread['median']:.2f} [min {r_spread['min']:.2f}, max {r_spread['max']:.2f}], "
+          f"target x{result['target']:g} {'met' if result['target_met'] else 'missed'} (compile "
+          f"{result['compile_single_s']:.1f} s single, {result['compile_sweep_s']:.1f} s sweep, lanes' init "
+          f"{result['init_lanes_s']:.1f} s; load {load_avg_start:.2f} -> {result['load_avg_end']:.2f})")
+    emit(result, out)
     return 0
 
 
