@@ -261,6 +261,7 @@ def test_cdrl_eval_imagination_writes_its_figures_and_video(tmp_path, capsys):
     assert "value_corr" in out and "wrote" in out
     result = json.loads((run.path / "imagination.json").read_text())
     assert 0 < result["starts"] <= 2 * 5 and result["value_head"] and result["gamma"] == cfg.gamma
+    assert result["reward_source"] == "lookahead"
     assert isinstance(result["value_corr"], float) and 0 < result["value_states"] <= 2 * 50
     assert list(result["by_horizon"]) == ["1", "3", "5", "15"] and list(result["by_steps"]) == ["1", "5", "15"]
     assert len(result["reward_auc"]["straight"]) == len(result["reward_auc"]["all"]) == 15

@@ -92,15 +92,16 @@ def start(variant: Variant, game, env_params, key):
 
 
 def reward_source(variant: Variant, hp) -> str:
-    """Where the imagined reward comes from: the variant's reward head, else the look-ahead's.
-    ValueError if the model has neither, or imagines no actions."""
+    """Where the imagined reward comes from: the look-ahead's reward head where the run trains
+    one (it is fitted at every imagined step), else the variant's own. ValueError if the model
+    has neither, or imagines no actions."""
     if not variant.has_controller:
         raise ValueError(f"variant {variant.name!r} takes no actions, so it cannot imagine the steering choices "
                          "(a controller variant: action_loop, reward_prediction, final_proposal)")
-    if variant.predicts_reward:
-        return "variant"
     if hp is not None:
         return "lookahead"
+    if variant.predicts_reward:
+        return "variant"
     raise ValueError(f"variant {variant.name!r} has no reward head and the run no look-ahead heads "
                      "(train it with --lookahead-steps, or use reward_prediction or final_proposal)")
 
@@ -130,7 +131,7 @@ def _followed_branches(variant: Variant, params, game, env_params, hp, keys, *, 
             carry, frame = c
             carry, out = variant.imagine_step(params, carry, frame, buttons)
             h = variant.features(carry)
-            r = out["reward"] if variant.predicts_reward else lookahead.reward(heads, h, hp)
+            r = lookahead.reward(heads, h, hp) if heads is not None else out["reward"]
             nxt = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
             shown = None
             if frames:
