@@ -78,6 +78,7 @@ def test_static_options_refused():
         stack_learners([base, RunConfig(**TINY, **LEARNERS["ppo"], ctrl_lr=1e-3)])
 
 
+@pytest.mark.e2e
 def test_sweep_cli_of_ppo(tmp_path, capsys):
     sweep = tmp_path / "s"
     args = ["sweep", "--run-dir", str(sweep), "--learner", "ppo", "--preset", "tiny", "--batch", "2", "--unroll", "4",
