@@ -79,6 +79,24 @@ def timed(fn, *args):
     return out, time.perf_counter() - t0
 
 
+def alternate(args, n: int, frames: int, one, swept) -> tuple[list[float], list[float]]:
+    """Frames per second of `args.repeats` alternating repeats: the N configurations one after
+    another (`one(i)`, a step of configuration i), then the sweep (`swept()`, a step of all),
+    `args.steps` steps each. Both return a loss, read back to the host after every step."""
+    seq_fps, sweep_fps = [], []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        for i in range(n):
+            for _ in range(args.steps):
+                float(one(i))
+        seq_fps.append(frames / (time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+            np.asarray(swept())
+        sweep_fps.append(frames / (time.perf_counter() - t0))
+    return seq_fps, sweep_fps
+
+
 def learner_result(args) -> dict:
     """The `--learner` measurement: N seeds swept against N runs one after another."""
     from cdrl.learners import learner_class, train_program
@@ -99,20 +117,16 @@ def learner_result(args) -> dict:
         seq[i], m = train_program(job.built[i], seq[i])
         float(m["loss"])
 
-    frames = n * T * B * args.steps
-    seq_fps, sweep_fps = [], []
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        for i in range(n):
-            for _ in range(args.steps):
-                seq[i], m = train_program(job.built[i], seq[i])
-                float(m["loss"])
-        seq_fps.append(frames / (time.perf_counter() - t0))
-        t0 = time.perf_counter()
-        for _ in range(args.steps):
-            states, alive, m = learner_sweep_step(job.learner, states, alive)
-            np.asarray(m["loss"])
-        sweep_fps.append(frames / (time.perf_counter() - t0))
+    def one(i):
+        seq[i], m = train_program(job.built[i], seq[i])
+        return m["loss"]
+
+    def swept():
+        nonlocal states, alive
+        states, alive, m = learner_sweep_step(job.learner, states, alive)
+        return m["loss"]
+
+    seq_fps, sweep_fps = alternate(args, n, n * T * B * args.steps, one, swept)
     return {"benchmark": "sweep_throughput", "learner": args.learner, "variant": variant, "preset": args.preset,
             "configs": n, "swept": "seed", "batch": B, "unroll": T, "steps_per_repeat": args.steps,
             "repeats": args.repeats, "lanes_alive": int(np.sum(np.asarray(alive))),
@@ -174,20 +188,16 @@ def main(argv=None) -> int:
         if i == 0:
             compile_single = time.perf_counter() - t0
 
-    frames = n * T * B * args.steps
-    seq_fps, sweep_fps = [], []
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        for i in range(n):
-            for _ in range(args.steps):
-                seq_states[i], m = train_step(variant, seq_states[i], seq_hps[i], singles[i])
-                float(m["loss"])
-        seq_fps.append(frames / (time.perf_counter() - t0))
-        t0 = time.perf_counter()
-        for _ in range(args.steps):
-            states, alive, m = sweep_step(variant, states, hps, alive, chunks)
-            np.asarray(m["loss"])
-        sweep_fps.append(frames / (time.perf_counter() - t0))
+    def one(i):
+        seq_states[i], m = train_step(variant, seq_states[i], seq_hps[i], singles[i])
+        return m["loss"]
+
+    def swept():
+        nonlocal states, alive
+        states, alive, m = sweep_step(variant, states, hps, alive, chunks)
+        return m["loss"]
+
+    seq_fps, sweep_fps = alternate(args, n, n * T * B * args.steps, one, swept)
 
     ratios = [sw / sq for sq, sw in zip(seq_fps, sweep_fps)]
     r_spread = spread(ratios)

@@ -221,16 +221,24 @@ def _row(cfg: RunConfig, run: RunDir, policy: str, result: LoopResult, k: int) -
             "play": rows}
 
 
-def format_learner_results(rows: Sequence[dict]) -> str:
-    """An online sweep's rows as a Markdown table."""
-    head = "| config | lr | momentum | seed | threshold | final loss | train return | play return | diverged |"
-    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+def markdown_rows(rows: Sequence[dict], columns: dict[str, str]) -> str:
+    """A sweep's rows as a Markdown table: config, lr, momentum, seed and threshold, then
+    `columns` (header -> row key, numbers to 4 digits, None as '-'), then the divergence."""
+    head = ["config", "lr", "momentum", "seed", "threshold", *columns, "diverged"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def num(v):
         return "-" if v is None else f"{v:.4g}"
 
     for r in rows:
         div = "-" if r["diverged_at"] is None else f"step {r['diverged_at']} ({r['diverged_group']}, {r['diverged_ratio']:.3g})"
-        lines.append(f"| {r['name']} | {r['lr']:g} | {r['momentum']:g} | {r['seed']} | {r['diverge_threshold']:g} | "
-                     f"{num(r['final_loss'])} | {num(r['train_return'])} | {num(r['play_return'])} | {div} |")
+        cells = [r["name"], f"{r['lr']:g}", f"{r['momentum']:g}", str(r["seed"]), f"{r['diverge_threshold']:g}",
+                 *(num(r[key]) for key in columns.values()), div]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def format_learner_results(rows: Sequence[dict]) -> str:
+    """An online sweep's rows as a Markdown table."""
+    return markdown_rows(rows, {"final loss": "final_loss", "train return": "train_return",
+                                "play return": "play_return"})

@@ -47,7 +47,7 @@ from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import all_or_none, allgather_json, is_primary, primary_first
 from cdrl.runs.grid import (GRID_FIELDS, Grid, SweepJob, held_configs, init_sweep,  # noqa: F401 - public names
                             make_streams, run_grid, stack, sweep_step, sweep_step_fn, take)
-from cdrl.runs.learner_sweep import format_learner_results, learner_sweep_run
+from cdrl.runs.learner_sweep import format_learner_results, learner_sweep_run, markdown_rows
 from cdrl.runs.rundir import RunDir, atomic_write_text
 from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.sweepstate import (SWEEP_FILE, SWEEP_KEEP, gather_progress, read_progress, read_sweep,
@@ -269,19 +269,9 @@ def format_results(rows: Sequence[dict]) -> str:
     """The sweep's rows as a Markdown table (an online sweep's: `format_learner_results`)."""
     if rows and "learner" in rows[0]:
         return format_learner_results(rows)
-    head = ("| config | lr | momentum | seed | threshold | final train BCE | test BCE | copy-last BCE | entropy floor "
-            "| excess ratio | max norm ratio | diverged |")
-    lines = [head, "|" + "---|" * (head.count("|") - 1)]
-
-    def num(v):
-        return "-" if v is None else f"{v:.4g}"
-
-    for r in rows:
-        div = "-" if r["diverged_at"] is None else f"step {r['diverged_at']} ({r['diverged_group']}, {r['diverged_ratio']:.3g})"
-        lines.append(f"| {r['name']} | {r['lr']:g} | {r['momentum']:g} | {r['seed']} | {r['diverge_threshold']:g} | "
-                     f"{num(r['final_loss'])} | {num(r['test_bce'])} | {num(r['test_copy_bce'])} | "
-                     f"{num(r['test_target_entropy'])} | {num(r['test_excess_ratio'])} | {num(r['max_ratio'])} | {div} |")
-    return "\n".join(lines)
+    return markdown_rows(rows, {"final train BCE": "final_loss", "test BCE": "test_bce",
+                                "copy-last BCE": "test_copy_bce", "entropy floor": "test_target_entropy",
+                                "excess ratio": "test_excess_ratio", "max norm ratio": "max_ratio"})
 
 
 def lr_search(base: RunConfig, candidates: Sequence[float], probe_steps: int, threshold: float,
