@@ -1,6 +1,9 @@
 """Controller runs (PPO and the controller trained in imagination) through the CLI: resumed runs
 equal straight ones, `cdrl eval --policy` plays them, and a world model learnt offline starts a
 controller run. (Apart from `test_control.py` so that the two test workers share the load.)"""
+import json
+import math
+
 import jax
 import numpy as np
 import pytest
@@ -13,19 +16,19 @@ RUN = ["--preset", "tiny", "--batch", "4", "--unroll", "4", "--episode-steps", "
 
 
 def _losses(run_dir):
-    import json
-
     return [json.loads(line)["loss"] for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
 
 
-@pytest.mark.parametrize("learner", [["--variant", "ppo"],
+@pytest.mark.parametrize("learner", [pytest.param(["--variant", "ppo"], marks=pytest.mark.e2e),
                                      ["--variant", "final_proposal", "--controller", "critic", "--replay", "4",
-                                      "--horizon", "3", "--model-updates", "2", "--warmup-steps", "1"]],
+                                      "--horizon", "3", "--model-updates", "2", "--warmup-steps", "1",
+                                      "--lookahead-steps", "2"]],
                          ids=["ppo", "critic"])
 def test_learners_are_runs_that_resume_exactly(tmp_path, capsys, learner):
-    """PPO and the controller trained in imagination are runs like any other: config, metrics,
-    checkpoints; a run stopped at a checkpoint and resumed gives the straight run's losses, and
-    `cdrl eval --policy` plays its policy against the references on the same games."""
+    """PPO and the controller trained in imagination (its world model with the look-ahead
+    losses) are runs like any other: config, metrics, checkpoints; a run stopped at a checkpoint
+    and resumed gives the straight run's losses, and `cdrl eval --policy` plays its policy
+    against the references on the same games."""
     from cdrl.cli import main
 
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
@@ -34,6 +37,10 @@ def test_learners_are_runs_that_resume_exactly(tmp_path, capsys, learner):
     assert main(["train", "--resume", str(resumed), "--steps", "4"]) == 0
     a, b = _losses(straight), _losses(resumed)
     assert len(a) == len(b) == 4 and max(abs(x - y) for x, y in zip(a, b)) <= 1e-6, (a, b)
+    if "--lookahead-steps" in learner:  # the model's updates take every look-ahead term
+        terms = json.loads((resumed / "metrics.jsonl").read_text().splitlines()[-1])["terms"]
+        assert all(math.isfinite(terms[f"model_{t}"]) for t in ("imag_obs_bce", "reward_twohot", "cont_bce",
+                                                                 "value_twohot"))
     capsys.readouterr()
     assert main(["eval", "--policy", str(straight), "--episodes", "3"]) == 0
     out = capsys.readouterr().out
@@ -41,6 +48,7 @@ def test_learners_are_runs_that_resume_exactly(tmp_path, capsys, learner):
     assert all(row in out for row in (name, *play.REFERENCES))
 
 
+@pytest.mark.e2e
 def test_a_world_model_learnt_offline_starts_a_controller_run(tmp_path, capsys):
     """`--controller none` trains a controller variant offline on recorded episodes (the reward
     terms off by default, weighted by `reward_weight` and `reward_balanced_weight` when set);

@@ -233,6 +233,7 @@ def test_cdrl_eval_imagination_names_a_run_it_cannot_probe(tmp_path, capsys, opt
     assert says in err and "Traceback" not in err
 
 
+@pytest.mark.e2e
 def test_cdrl_eval_imagination_writes_its_figures_and_video(tmp_path, capsys):
     """A run of final_proposal with look-ahead heads (its value head given random last weights,
     so that its values vary): the JSON holds every figure, the value's correlation among them,

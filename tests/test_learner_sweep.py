@@ -34,7 +34,7 @@ def alone(cfg: RunConfig, steps: int) -> list[dict]:
     return out
 
 
-@pytest.mark.parametrize("name", sorted(LEARNERS))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.e2e) if n != "ppo" else n for n in sorted(LEARNERS)])
 def test_lanes_equal_single_runs(name):
     cfgs = Grid(seed=(0, 1)).configs(RunConfig(**TINY, **LEARNERS[name]))
     sinks = [Sink(), Sink()]

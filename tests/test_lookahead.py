@@ -1,14 +1,11 @@
 """The look-ahead losses (`cdrl.training.lookahead`) against plain written-out loops: two-hot
 codes, and every term of a chunk computed start by start and step by step in Python;
 the heads' own optimiser and the target copy."""
-import json
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdrl.cli import main as cli_main
 from cdrl.data.stream import Chunk
 from cdrl.models import TINY, StepInput, make_variant
 from cdrl.training import lookahead as la
@@ -188,29 +185,3 @@ def test_look_ahead_needs_a_model_that_acts_and_refuses_multi_step_feeding():
     with pytest.raises(ValueError, match="choose one"):
         HParams.create(make_variant("final_proposal", TINY), feed_every=3, lookahead=la.LookaheadHParams.create())
 
-
-def _online(run_dir, *extra):
-    args = ["train", "--run-dir", str(run_dir), "--variant", "final_proposal", "--learner", "imagination_ac",
-            "--preset", "tiny", "--batch", "2", "--unroll", "6", "--replay", "4", "--model-updates", "1",
-            "--horizon", "3", "--lookahead-steps", "2", "--obs-norm", "none", "--eval-every", "0",
-            "--eval-episodes", "1", "--episode-steps", "20", "--checkpoint-every", "2", "--no-tensorboard",
-            "--no-compile-cache", *extra]
-    assert cli_main(args) == 0
-
-
-def test_an_online_run_with_the_look_ahead_resumes_exactly(tmp_path):
-    """The replay learners' model updates take the look-ahead terms (logged as model_<term>); a
-    run stopped at step 3 and resumed to 4 logs the numbers of a run of 4 steps straight."""
-    _online(tmp_path / "straight", "--steps", "4")
-    _online(tmp_path / "stopped", "--steps", "3")
-    assert cli_main(["train", "--resume", str(tmp_path / "stopped"), "--steps", "4", "--no-compile-cache"]) == 0
-    read = lambda d: [json.loads(line) for line in (d / "metrics.jsonl").read_text().splitlines()]  # noqa: E731
-    straight, resumed = read(tmp_path / "straight"), read(tmp_path / "stopped")
-    assert len(straight) == 4
-    for term in la.TERMS:
-        values = [r["terms"][f"model_{term}"] for r in straight]
-        assert np.all(np.isfinite(values)), term
-    assert [r["loss"] for r in resumed] == [r["loss"] for r in straight]
-    assert [r["terms"] for r in resumed] == [r["terms"] for r in straight]
-    config = json.loads((tmp_path / "stopped" / "config.json").read_text())
-    assert config["loss"]["lookahead_steps"] == 2

@@ -150,6 +150,14 @@ class LearnerSweepJob(Job):
                 "reward": f"{np.mean([r['reward'] for r in records]):.3f}"}
 
 
+def check_sweepable(cfg: RunConfig) -> None:
+    """ValueError for a learner an online sweep does not cover yet: the thesis's ascent
+    (`thesis_ascent`), whose lanes' metrics the host loop cannot read one by one."""
+    if cfg.learner == "thesis_ascent":
+        raise ValueError("learner 'thesis_ascent' is not covered by online sweeps yet; sweep a learner that keeps a "
+                         "replay buffer or ppo, or train its configurations as separate runs")
+
+
 def run_lanes(cfgs: Sequence[RunConfig], steps: int, sinks: Sequence[Sink] | None = None,
               progress: bool = False) -> LoopResult:
     """`steps` train steps of every configuration of `cfgs` as lanes of one program, recording
@@ -167,6 +175,7 @@ def learner_sweep_run(base: RunConfig, grid: Grid, run_dir: str | Path, progress
     run_dir = Path(run_dir)
     if base.devices != 1:
         raise ValueError(f"an online sweep runs on one device; got devices {base.devices}")
+    check_sweepable(base)
     base = with_obs_norm(base, RunDir(run_dir).data_cache)  # one input normalisation for every lane
     cfgs = grid.configs(base)
     runs = [RunDir(run_dir / grid.name(c)) for c in cfgs]
