@@ -244,13 +244,11 @@ class ReplayLearner(Learner):
         (loss, (_, terms, _)), grads = jax.value_and_grad(
             lambda p: chunk_loss(variant, p, carry, hp.model, chunk), has_aux=True)(model.params)
         grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, variant.controller_mask(model.params))
-        heads = variant.reward_mask(model.params)
-        if hp.model.lookahead is not None:  # the look-ahead heads step with the heads' optimiser too
-            heads = jax.tree.map(jnp.maximum, heads, lookahead.head_mask(model.params))
+        look = lookahead.head_mask(model.params)  # the look-ahead heads: the heads' optimiser moves them
+        heads = jax.tree.map(jnp.maximum, variant.reward_mask(model.params), look)
+        model_grads = jax.tree.map(lambda g, m: g * (1.0 - m), grads, look)
         params, opt_state, guard = guarded_update(hp.model.opt, hp.model.diverge_threshold, model.params,
-                                                  model.opt_state, jax.tree.map(lambda g, m: g * (1.0 - m), grads,
-                                                                                lookahead.head_mask(model.params)),
-                                                  loss)
+                                                  model.opt_state, model_grads, loss)
         head, head_state, head_guard = guarded_update(hp.ctrl_opt, hp.model.diverge_threshold, model.params,
                                                       state.reward_opt_state, grads, loss)
         params = jax.tree.map(lambda s, a, m: jnp.where(m > 0, a, s), params, head, heads)

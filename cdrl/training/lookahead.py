@@ -75,8 +75,8 @@ class LookaheadHParams:
             raise ValueError(f"two-hot needs bins >= 2 and limit > 0, got {bins} and {limit}")
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         head_opt = head_opt if head_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
-        return cls(head_opt, f32(gamma), f32(lam), f32(target_decay), f32(head_grad), steps=steps, stride=stride, bins=bins,
-                   limit=limit, hidden=hidden)
+        return cls(head_opt, f32(gamma), f32(lam), f32(target_decay), f32(head_grad), steps=steps, stride=stride,
+                   bins=bins, limit=limit, hidden=hidden)
 
     @staticmethod
     def default_weights() -> dict[str, float]:
