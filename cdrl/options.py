@@ -122,8 +122,9 @@ class ControlOptions:
                                          "imagined_ascent (ascent through imagined rollouts), imagination_ac (an "
                                          "actor-critic in imagination), one_step_q (the buttons' values one model "
                                          "step ahead, from real returns), onpolicy_ac (an actor-critic on the "
-                                         "model's states of the chunk just played, from its real rewards); the "
-                                         "last four keep a replay buffer. world_model: no controller, the world "
+                                         "model's states of the chunk just played, from its real rewards), "
+                                         "mpc_planner (plans each step through the model); the last five keep "
+                                         "a replay buffer. world_model: no controller, the world "
                                          "model learns offline on recorded episodes, a start for --init-from. ppo: "
                                          "model-free, from the same frames, whatever the variant. Old names: "
                                          "rollout, imagine, critic, value, real, none")
@@ -140,7 +141,8 @@ class ControlOptions:
                                   "objective", traced=True)
     replay: int = _opt(64, "replay learners: chunks kept in the replay buffer")
     model_updates: int = _opt(4, "replay learners: model updates per collected chunk")
-    horizon: int = _opt(15, "imagined_ascent and imagination_ac: imagined steps")
+    horizon: int = _opt(15, "imagined_ascent and imagination_ac: imagined steps; mpc_planner: the steps of "
+                                "each plan")
     ctrl_lr: float = _opt(3e-4, "replay learners: Adam learning rate of the controller and the critic; the "
                                 "look-ahead heads' too", traced=True)
     gamma: float = _opt(0.99, "discount of future reward", traced=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from cdrl.learners.api import Learner, train_program
 from cdrl.learners.imagination_ac import ImaginationAC
 from cdrl.learners.imagined_ascent import ImaginedAscent
+from cdrl.learners.mpc_planner import MPCPlanner
 from cdrl.learners.one_step_q import OneStepQ
 from cdrl.learners.onpolicy_ac import OnPolicyAC
 from cdrl.learners.ppo import PPO
@@ -60,6 +61,7 @@ register(ImaginationAC, aliases=("critic",))
 register(OneStepQ, aliases=("value",))
 register(OnPolicyAC, aliases=("real",))
 register(PPO)
+register(MPCPlanner)
 
 __all__ = ["ALIASES", "LEARNERS", "OFFLINE", "Learner", "canonical", "learner_class", "names", "register",
            "train_program"]

@@ -5,10 +5,12 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 
 from cdrl.learners.replay_base import ReplayConfig, ReplayLearner, ReplayState, draw_buttons, starts
 from cdrl.models.base import Variant
 from cdrl.options import CONTROL
+from cdrl.training import lookahead
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +37,20 @@ def imagine(variant: Variant, horizon: int, params, carry, action, frame, key, s
 
     _, traj = jax.lax.scan(body, (carry, action, frame), jax.random.split(key, horizon))
     return traj
+
+
+def imagined_return(look, params, rewards, h, gamma):
+    """Σ_k γ^k r̃_{k+1} + γ^H V(h_H) of imagined steps (`rewards`, states `h`, leading axis H):
+    the rewards and the value of the look-ahead heads where the model has them (`look`, the
+    look-ahead's numbers, and `params["lookahead"]`); else the variant's own `rewards` and no
+    value at the end."""
+    horizon = rewards.shape[0]
+    discount = gamma ** jnp.arange(horizon, dtype=jnp.float32).reshape((horizon,) + (1,) * (rewards.ndim - 1))
+    if look is None or "lookahead" not in params:
+        return jnp.sum(discount * rewards, axis=0)
+    heads = params["lookahead"]
+    rewards = lookahead.reward(heads, h, look)
+    return jnp.sum(discount * rewards, axis=0) + gamma ** horizon * lookahead.value(heads, h[-1], look)
 
 
 class ImaginationLearner(ReplayLearner):

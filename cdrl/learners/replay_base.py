@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import flax.struct
 import jax
@@ -178,6 +178,8 @@ class ReplayLearner(Learner):
     learner overrides `played_update`, `replayed_update` or both."""
 
     extras = ("explore", "controller_on")
+    # Outputs of `act` (its `info`, per game) whose mean over the chunk played is logged as a term.
+    act_terms: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def hparams(cls, cfg, model) -> ReplayHParams:
@@ -225,7 +227,8 @@ class ReplayLearner(Learner):
                                                    self.model.arch)
             record = {"obs": obs.frames, "next_obs": nxt, "action": executed, "reward": reward,
                       "is_first": obs.is_first, "h": self.model.features(carry)}
-            scores = {"pred_reward": out["reward"], "obs_bce": pixel_bce(out["logits"], nxt)}
+            scores = {"pred_reward": out["reward"], "obs_bce": pixel_bce(out["logits"], nxt),
+                      **{k: out[k] for k in self.act_terms}}
             return (carry, games, view.action, key), (record, {**stats, **scores})
 
         (carry, games, action, key), (chunk, stats) = jax.lax.scan(
@@ -316,7 +319,8 @@ class ReplayLearner(Learner):
             # copy_bce and target_entropy: the excess ratio of its predictions); the training
             # terms of its last update (on a replayed chunk) as model_<term>.
             "terms": {**{f"model_{k}": v for k, v in last["terms"].items()}, **scores, **ctrl_terms,
-                      "obs_bce": jnp.mean(stats["obs_bce"]), "pred_reward": jnp.mean(stats["pred_reward"])},
+                      "obs_bce": jnp.mean(stats["obs_bce"]), "pred_reward": jnp.mean(stats["pred_reward"]),
+                      **{k: jnp.mean(stats[k]) for k in self.act_terms}},
             "reward": jnp.mean(stats["reward"]),
             "episodes": jnp.sum(stats["done"]),
             "return_sum": jnp.sum(stats["finished_return"]),

@@ -117,6 +117,11 @@ CONFIGS: dict[str, dict] = {
                        "pretrain": {"variant": "final_proposal", "learner": "world_model", "reward_balanced_weight": 0.003}},
     "real-all": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
                  "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
+    # Model-predictive control on a world model trained to look ahead (reward and value heads).
+    "plan-pre": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 5, "lookahead_steps": 3,
+                 "head_grad": 1e-4, "noise_std": 0.1, "warmup_steps": 0,
+                 "pretrain": {"variant": "final_proposal", "learner": "world_model", "lookahead_steps": 3,
+                              "head_grad": 1e-4}},
     "ppo": {"learner": "ppo"},
     "ppo-10x": {"learner": "ppo", "frames_factor": 10},
 }

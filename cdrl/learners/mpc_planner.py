@@ -1,0 +1,107 @@
+"""`mpc_planner`: model-predictive control through the world model (TD-MPC2's planning, with
+the buttons' eight combinations as the candidates).
+
+Each step, from the model's state after the real frame, every candidate plan is imagined
+`horizon` steps: one of the eight button combinations held throughout. A plan's score is its
+imagined discounted return plus the discounted value at its end (`imagined_return`). The
+buttons executed next are the best plan's first, each drawn uniformly with the exploration ε.
+
+The world model learns from the replay buffer as every replay learner's does. With the
+look-ahead (`--lookahead-steps K`) its reward head scores the imagined steps and its value
+head, fitted to real λ-returns, ends them; without, the variant's own reward scores them and
+no value ends them. The controller head D_a is not trained: the planner is the policy.
+"""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from cdrl.data.frames import model_obs
+from cdrl.learners.game_batch import Observation
+from cdrl.learners.imagination import ImaginationConfig, imagined_return
+from cdrl.learners.replay_base import BUTTON_COMBOS, ReplayLearner, ReplayState, draw_buttons
+from cdrl.models.base import StepInput, Variant
+
+# A tie between plans (an untrained model scores every plan alike) is broken at random.
+JITTER = 1e-6
+
+
+def plan(variant: Variant, look, params, carry, frame, gamma, horizon: int, key):
+    """Every candidate plan from the model's state `carry` (B games), the first fed frame
+    `frame` `[B, H, W]` (the model's prediction of the next one). Returns the plans' scores
+    `[B, C]` (C = 8: `BUTTON_COMBOS`, each held for `horizon` steps) and the best plan's first
+    buttons `[B, A]`. `look`: the look-ahead's numbers (`LookaheadHParams`) or None."""
+    b = frame.shape[0]
+
+    def rollout(buttons):
+        action = jnp.broadcast_to(buttons, (b, buttons.shape[-1]))
+
+        def body(c, _):
+            carry, frame = c
+            carry, out = variant.imagine_step(params, carry, frame, action)
+            frame = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
+            return (carry, frame), (out["reward"], variant.features(carry))
+
+        _, (rewards, h) = jax.lax.scan(body, (carry, frame), None, length=horizon)
+        return imagined_return(look, params, rewards, h, gamma)
+
+    scores = jax.vmap(rollout)(jnp.asarray(BUTTON_COMBOS)).T  # [B, C]
+    best = jnp.argmax(scores + JITTER * jax.random.uniform(key, scores.shape), axis=-1)
+    return scores, jnp.asarray(BUTTON_COMBOS)[best]
+
+
+@functools.lru_cache(maxsize=32)
+def planner_fns(variant: Variant, horizon: int):
+    """(init, step) of the noise-free planner for one game, in the form of
+    `cdrl.evaluation.play`; its parameters are `{"model", "look", "gamma"}`. One pair per
+    variant and horizon, so a program playing it compiles once for any parameters."""
+
+    def init(key, params):
+        del key, params
+        return {"carry": variant.init_carry(1), "action": jnp.zeros((1, variant.arch.action_dim)),
+                "is_first": jnp.ones((1,), bool)}
+
+    def step(key, state, obs, params):
+        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=state["action"], is_first=state["is_first"])
+        carry, out = variant.step(params["model"], state["carry"], x)
+        _, best = plan(variant, params["look"], params["model"], carry, jax.nn.sigmoid(out["logits"]),
+                       params["gamma"], horizon, key)
+        return state["action"][0], {"carry": carry, "action": best, "is_first": jnp.zeros((1,), bool)}
+
+    return init, step
+
+
+class MPCPlanner(ReplayLearner):
+    """See the module docstring. `model` is a controller variant that predicts reward."""
+
+    name = "mpc_planner"
+    row = "planner"
+    act_terms = ("plan_spread",)
+
+    @classmethod
+    def from_run(cls, cfg, model, game, env_params):
+        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
+                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
+        return cls(model, game, config, cls.hparams(cfg, model), env_params)
+
+    def act(self, state: ReplayState, obs: Observation, key: jax.Array, explore=None):
+        """Execute the pending buttons; the model sees o_t and them. The buttons executed next
+        are the best plan's first, each drawn uniformly with chance ε. `info`: the model's
+        outputs and `plan_spread`, the best plan's score minus the worst's."""
+        explore = self.exploration(state) if explore is None else explore
+        executed = jnp.where(obs.is_first[:, None], 0.0, state.action)
+        params = state.model.params
+        carry, out = self.model.step(params, state.model.carry,
+                                     StepInput(obs=obs.frames, action=executed, is_first=obs.is_first))
+        k_plan, k_draw = jax.random.split(key)
+        scores, best = plan(self.model, self.hp.model.lookahead, params, carry, jax.nn.sigmoid(out["logits"]),
+                            self.hp.gamma, self.config.horizon, k_plan)
+        probs = (1.0 - explore) * best + explore * 0.5
+        state = state.replace(model=state.model.replace(carry=carry), action=draw_buttons(k_draw, probs))
+        return state, executed, {**out, "plan_spread": jnp.max(scores, -1) - jnp.min(scores, -1)}
+
+    def policy(self, state: ReplayState):
+        init, step = planner_fns(self.model, self.config.horizon)
+        return init, step, {"model": state.model.params, "look": self.hp.model.lookahead, "gamma": self.hp.gamma}
