@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from cdrl.data.gymrec import OBS_MODES
+from cdrl.evaluation.play import TEST_SEED
 from cdrl.options import SECTIONS, section_of
 from cdrl.runs import compile_cache
 from cdrl.runs.config import RECIPES, RunConfig
@@ -159,6 +160,9 @@ def _cmd_eval(args) -> int:
         if getattr(args, name) < 1:
             print(f"cdrl eval: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
             return 2
+    if args.video and not args.policy:
+        print("cdrl eval: --video records a game of a learned policy; give --policy RUN_DIR", file=sys.stderr)
+        return 2
     if args.policy:
         return _cmd_eval_policy(args)
     if args.imagination:
@@ -180,15 +184,18 @@ def _cmd_eval(args) -> int:
 
 def _cmd_eval_policy(args) -> int:
     from cdrl.evaluation.play import format_table
-    from cdrl.runs.online import eval_policy_run
+    from cdrl.runs.online import eval_policy_run, policy_run_video
 
     try:
         rows = eval_policy_run(Path(args.policy), episodes=args.episodes)
+        video = policy_run_video(Path(args.policy), args.video_seed) if args.video else None
     except USER_ERRORS as exc:
         print(f"cdrl eval: {exc}", file=sys.stderr)
         return 2
     print(format_table(rows))
     print(json.dumps(rows))
+    if video:
+        print(f"wrote {video}")
     return 0
 
 
@@ -342,6 +349,11 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--policy", metavar="RUN_DIR", default=None,
                     help="play the controller of RUN_DIR against the random and behaviour-switching policies "
                          "on the same seeds: mean return with a 95%% CI, episode length (default: none)")
+    ev.add_argument("--video", action="store_true",
+                    help="with --policy: also write RUN_DIR/policy.gif, a test game of the policy: the screen, its "
+                         "view, its buttons and a planner's plans")
+    ev.add_argument("--video-seed", type=int, default=TEST_SEED,
+                    help=f"with --video: the game's seed (default: {TEST_SEED}, the first test game)")
     ev.add_argument("--imagination", metavar="RUN_DIR", default=None,
                     help="whether the world model of RUN_DIR (a controller variant on the built-in game) imagines "
                          "which way to steer: imagined against real returns of four button sequences from the "

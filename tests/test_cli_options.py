@@ -182,6 +182,7 @@ def _bad_inputs(t):
         "eval of a garbage config": (["eval", "garbage"], "is not a valid run config"),
         "eval --policy of nothing": (["eval", "--policy", "nowhere"], "nowhere does not exist"),
         "eval --imagination of nothing": (["eval", "--imagination", "nowhere"], "nowhere does not exist"),
+        "eval --video without --policy": (["eval", "--video", "run"], "--video records a game of a learned policy"),
         "plot of a file": (["plot", "file"], "run directory file is a file"),
         "plot of a NaN config": (["plot", "nan"], "lr must be a finite number"),
         "plot of metrics that are not records": (["plot", "records"], "line 1 is not a record of a step"),

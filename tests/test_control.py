@@ -478,3 +478,30 @@ def test_random_turns_instead_replaces_a_share_with_random_turns():
     assert abs(out[replaced, :2].mean() - 0.5) < 0.06 and set(np.unique(out)) <= {0.0, 1.0}
     np.testing.assert_array_equal(jax.vmap(lambda k: random_turns_instead(k, buttons, 0.0))(keys[:50]),
                                   np.broadcast_to(buttons, (50, 3)))
+
+
+def test_each_configuration_is_paired_with_ppo_seed_by_seed():
+    """`paired_vs_ppo` is the mean and Student-t CI of the per-seed differences against PPO on
+    the same seeds (t(0.975, 2 dof) = 4.3027 from the table); PPO itself has none."""
+    results = _results({"critic": {0: 1.0, 1: 3.0, 2: 2.0}, "ppo": {0: 5.0, 1: 2.0, 2: 2.0}}, REFS, [0, 1, 2])
+    study.pair_with(results, "ppo")
+    paired = results["configs"]["critic"]["paired_vs_ppo"]
+    assert paired["per_seed"] == [-4.0, 1.0, 0.0] and paired["of"] == "return"
+    std = np.std([-4.0, 1.0, 0.0], ddof=1)
+    assert paired["mean"] == pytest.approx(-1.0) and paired["std"] == pytest.approx(std)
+    assert paired["ci95"] == pytest.approx([-1.0 - 4.3027 * std / np.sqrt(3), -1.0 + 4.3027 * std / np.sqrt(3)],
+                                           abs=1e-3)
+    assert "paired_vs_ppo" not in results["configs"]["ppo"]
+
+
+def test_a_budget_that_counts_every_frame_gives_the_online_part_what_the_data_left():
+    """At the 48k budget a pre-trained configuration's online run gets 48 000 game frames less
+    its pre-training data's; PPO gets all of them; data that leaves less than a chunk is refused."""
+    budget = study.BUDGETS["48k"]
+    planned = study.config_of("plan-pre", budget, 0, None, data_frames=9_364)
+    assert planned.steps == (48_000 - 9_364) // (planned.batch * planned.unroll)
+    ppo = study.config_of("ppo", budget, 0)
+    assert ppo.steps * ppo.batch * ppo.unroll == 48_000 - 48_000 % (ppo.batch * ppo.unroll)
+    assert study.config_of("plan-pre", study.BUDGETS["full"], 0, None, data_frames=9_364).steps == 38_400 // 128
+    with pytest.raises(ValueError, match="leave .* less than one chunk"):
+        study.config_of("plan-pre", budget, 0, None, data_frames=47_990)

@@ -42,10 +42,15 @@ def test_learners_are_runs_that_resume_exactly(tmp_path, capsys, learner):
         assert all(math.isfinite(terms[f"model_{t}"]) for t in ("imag_obs_bce", "reward_twohot", "cont_bce",
                                                                  "value_twohot"))
     capsys.readouterr()
-    assert main(["eval", "--policy", str(straight), "--episodes", "3"]) == 0
+    video = ["--video"] if "ppo" in learner else []  # the end-to-end tier writes a game of the policy too
+    assert main(["eval", "--policy", str(straight), "--episodes", "3", *video]) == 0
     out = capsys.readouterr().out
     name = "ppo" if "ppo" in learner else "controller"
     assert all(row in out for row in (name, *play.REFERENCES))
+    if video:
+        from PIL import Image
+
+        assert f"wrote {straight / 'policy.gif'}" in out and Image.open(straight / "policy.gif").n_frames > 1
 
 
 @pytest.mark.e2e

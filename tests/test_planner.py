@@ -103,3 +103,31 @@ def test_a_learner_that_looks_ahead_learns_the_left_bonus(name, updates):
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
     if name == "mpc_planner":
         assert init is planner_fns(learner.model, 3)[0]  # one compiled program per variant and horizon
+
+
+def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
+    """`cdrl eval --policy --video`'s recorder plays the game `play` plays for the same seed
+    (same return and length), keeps the screen, the view and the planner's scores, and the
+    buttons it pressed are the best plan's of the step before; the GIF has a frame a step."""
+    from PIL import Image
+
+    from cdrl.analysis.imagination_video import write_gif
+    from cdrl.analysis.policy_video import frame_images, record
+
+    learner, state = _left_bonus_learner("mpc_planner", lookahead_steps=2, horizon=3)
+    for _ in range(3):
+        state, _ = train_program(learner, state)
+    g, params = learner.game, learner.env_params
+    policy = learner.policy(state)
+    game = record(g, params, policy, 1003, games.MAX_STEPS, arch=learner.arch)
+    returns, lengths = play.play(g, params, policy[0], policy[1], [1003], games.MAX_STEPS, params=policy[2])
+    assert game["return"] == pytest.approx(float(returns[0]), abs=1e-5) and game["length"] == int(lengths[0])
+    n = game["length"]
+    assert game["screen"].shape == (n, 300, 500, 3) and game["screen"].dtype == np.uint8
+    assert game["view"].shape == (n, TINY.image_size, TINY.image_size) and game["scores"].shape == (n, 8)
+    top2 = np.sort(game["scores"], axis=1)[:, -2:]
+    clear = np.flatnonzero(top2[:-1, 1] - top2[:-1, 0] > 1e-4)  # no tie the planner's jitter breaks
+    assert clear.size > n // 2
+    np.testing.assert_array_equal(game["action"][clear + 1], rb.BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
+    path = write_gif(frame_images(game, "test"), tmp_path / "game.gif")
+    assert Image.open(path).n_frames == n

@@ -57,6 +57,8 @@ def controller_policy(variant: Variant, params) -> tuple[Callable, Callable, Any
 
 
 EVAL_SEED = 10_000  # the first held-out game; training games never use seeds this high
+# The first test game: final figures only, never a choice (validation games start at EVAL_SEED).
+TEST_SEED = 30_000
 REFERENCES = ("uniform", "never_accelerate", "behaviour", "privileged")
 
 

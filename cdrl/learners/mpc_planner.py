@@ -55,20 +55,22 @@ def plan(variant: Variant, look, params, carry, frame, gamma, horizon: int, key)
 @functools.lru_cache(maxsize=32)
 def planner_fns(variant: Variant, horizon: int):
     """(init, step) of the noise-free planner for one game, in the form of
-    `cdrl.evaluation.play`; its parameters are `{"model", "look", "gamma"}`. One pair per
+    `cdrl.evaluation.play`; its parameters are `{"model", "look", "gamma"}`. Its state keeps
+    the plans' `scores` of its last step (`cdrl.analysis.policy_video` shows them). One pair per
     variant and horizon, so a program playing it compiles once for any parameters."""
 
     def init(key, params):
         del key, params
         return {"carry": variant.init_carry(1), "action": jnp.zeros((1, variant.arch.action_dim)),
-                "is_first": jnp.ones((1,), bool)}
+                "is_first": jnp.ones((1,), bool), "scores": jnp.zeros((1, len(BUTTON_COMBOS)))}
 
     def step(key, state, obs, params):
         x = StepInput(obs=model_obs(obs, variant.arch)[None], action=state["action"], is_first=state["is_first"])
         carry, out = variant.step(params["model"], state["carry"], x)
-        _, best = plan(variant, params["look"], params["model"], carry, jax.nn.sigmoid(out["logits"]),
-                       params["gamma"], horizon, key)
-        return state["action"][0], {"carry": carry, "action": best, "is_first": jnp.zeros((1,), bool)}
+        scores, best = plan(variant, params["look"], params["model"], carry, jax.nn.sigmoid(out["logits"]),
+                            params["gamma"], horizon, key)
+        return state["action"][0], {"carry": carry, "action": best, "is_first": jnp.zeros((1,), bool),
+                                    "scores": scores}
 
     return init, step
 

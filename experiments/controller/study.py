@@ -74,7 +74,7 @@ import numpy as np
 import scipy.stats
 
 from cdrl import learners
-from cdrl.evaluation.play import EVAL_SEED, model_fit
+from cdrl.evaluation.play import EVAL_SEED, TEST_SEED, compare_policies, model_fit
 from cdrl.evaluation.stats import across
 from cdrl.models import make_variant
 from cdrl.options import PRESET_ALIASES
@@ -133,7 +133,11 @@ class Budget:
     held-out games per evaluation and their step cap, evaluations per run, the model-based
     runs' updates before their controller learns, B x T of model-based runs and of PPO, the
     steps of a world model's offline pre-training (B 4 x T 8, the `tuned` recipe's), the
-    game's level (`envs.slither.LEVELS`) and the max filter the frames are shrunk after."""
+    game's level (`envs.slither.LEVELS`) and the max filter the frames are shrunk after.
+    `test_games`: after training, each run's final policy plays that many test games (seeds
+    `TEST_SEED` and up, never used for a choice; 0: none). `pretrain_in_frames`: `frames` is
+    every game frame a run uses, its pre-training data's included (the online part gets the
+    rest); otherwise the online part gets `frames` and the data comes on top."""
 
     preset: str
     frames: int
@@ -146,12 +150,17 @@ class Budget:
     pretrain_steps: int = 8000
     level: str = "thesis"
     max_filter: int = 1
+    test_games: int = 0
+    pretrain_in_frames: bool = False
 
 
 BUDGETS = {
     "full": Budget("small", 38_400, 64, 200, 4, 50),
     "default": Budget("small", 6_400, 16, 200, 2, 10),
     "tiny": Budget("tiny", 64, 3, 20, 1, 1, model_shape=(4, 4), ppo_shape=(4, 4), pretrain_steps=4),
+    # Every frame counted, pre-training data included; final figures from 128 test games.
+    "48k": Budget("small", 48_000, 64, 200, 4, 50, test_games=128, pretrain_in_frames=True),
+    "192k": Budget("small", 192_000, 64, 200, 8, 50, test_games=128, pretrain_in_frames=True),
 }
 
 
@@ -164,14 +173,18 @@ def pretrain_config(name: str, budget: Budget, seed: int) -> RunConfig | None:
                      eval_episodes=6, tensorboard=False, level=budget.level, **CONFIGS[name]["pretrain"])
 
 
-def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = None) -> RunConfig:
+def config_of(name: str, budget: Budget, seed: int, init_from: Path | None = None, data_frames: int = 0) -> RunConfig:
     """The run of configuration `name` for `seed` at `budget` (from the world model of the
-    run in `init_from`, its pre-training)."""
+    run in `init_from`, its pre-training, whose data held `data_frames` game frames)."""
     options = dict(CONFIGS[name])
     factor = options.pop("frames_factor", 1)
     options.pop("pretrain", None)
     batch, unroll = budget.ppo_shape if options.get("learner") == "ppo" else budget.model_shape
-    steps = max(1, budget.frames * factor // (batch * unroll))
+    online = budget.frames * factor - (data_frames if budget.pretrain_in_frames else 0)
+    if online < batch * unroll:
+        raise ValueError(f"configuration {name!r}: its pre-training data's {data_frames} game frames leave "
+                         f"{online} of the budget's {budget.frames * factor}, less than one chunk")
+    steps = online // (batch * unroll)
     every = max(1, steps // budget.evals)
     options = {"warmup_steps": budget.warmup_steps, **options}
     return RunConfig(preset=budget.preset, max_filter=budget.max_filter, batch=batch, unroll=unroll, steps=steps,
@@ -207,6 +220,12 @@ def seed_result(run_dir: Path, budget: Budget) -> dict:
            "length": final[name]["mean_length"], "frames": cfg.steps * frames,
            "curve": [[r["step"] * frames, r["policies"][name]["mean_return"]] for r in evals],
            "references": {k: v for k, v in final.items() if k != name}}
+    if budget.test_games:
+        _, learner, state = restore_learner(run)
+        rows = compare_policies(learner.game, learner.env_params, {name: learner.policy(state)}, budget.test_games,
+                                budget.episode_steps, seed=TEST_SEED)
+        out["test"] = {"return": rows[name]["mean_return"], "ci95_over_games": rows[name]["ci95"],
+                       "length": rows[name]["mean_length"], "references": {k: v for k, v in rows.items() if k != name}}
     if cfg.kind == "online" and make_variant(cfg.variant, cfg.arch).predicts_reward:
         _, program, state = restore_learner(run)
         seeds = np.arange(EVAL_SEED, EVAL_SEED + budget.eval_episodes)
@@ -246,10 +265,12 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
             if pre is not None:
                 pre_dir = Path(work) / name / f"pretrain{seed}"
                 pre_wall = train_or_read(pre, pre_dir)
-            wall = train_or_read(config_of(name, budget, seed, pre_dir), run_dir)
+            pre_result = pretrain_result(pre_dir) if pre_dir is not None else None
+            data_frames = pre_result["pretrain"]["data_frames"] if pre_result else 0
+            wall = train_or_read(config_of(name, budget, seed, pre_dir, data_frames), run_dir)
             result = {**seed_result(run_dir, budget), "wall_s": wall + pre_wall}
-            if pre_dir is not None:  # the pre-training's game frames count too
-                result.update(pretrain_result(pre_dir))
+            if pre_result is not None:  # the pre-training's game frames count too
+                result.update(pre_result)
                 offset = result["pretrain"]["data_frames"]
                 result["frames"] += offset
                 result["curve"] = [[f + offset, r] for f, r in result["curve"]]
@@ -259,7 +280,13 @@ def run_experiment(names: Sequence[str], budget: Budget, seeds: Sequence[int], w
             # section memory"). The next seed loads them again from the compilation cache.
             jax.clear_caches()
         results["references"] = results["references"] or per_seed[str(seeds[0])]["references"]
+        if budget.test_games:
+            results["test_references"] = results.get("test_references") or per_seed[str(seeds[0])]["test"].pop(
+                "references")
+            for result in per_seed.values():
+                result["test"].pop("references", None)
         results["configs"][name] = summarise(CONFIGS[name], per_seed)
+        pair_with(results, "ppo")
         if on_config is not None:
             on_config(results)
     return results
@@ -279,7 +306,27 @@ def summarise(options: dict, per_seed: dict) -> dict:
     if "reward_fit" in first:
         row["reward_fit"] = {k: across([s["reward_fit"][k] for s in per_seed.values()])
                              for k in ("correlation", "r2")}
+    if "test" in first:
+        row["test_return"] = across([s["test"]["return"] for s in per_seed.values()])
     return row
+
+
+def pair_with(results: dict, base: str) -> None:
+    """Each configuration's `paired_vs_<base>`: the per-seed differences of its final return
+    against configuration `base`'s on the same seeds (test games where the budget plays them,
+    else the held-out ones), their mean and 95 % CI. Nothing while `base` has not run."""
+    if base not in results["configs"]:
+        return
+    key = "test_return" if "test_return" in results["configs"][base] else "return"
+    theirs = dict(zip(results["configs"][base]["seeds"], results["configs"][base][key]["per_seed"]))
+    for name, row in results["configs"].items():
+        if name == base or key not in row:
+            continue
+        mine = dict(zip(row["seeds"], row[key]["per_seed"]))
+        common = [s for s in mine if s in theirs]
+        if common:
+            row[f"paired_vs_{base}"] = {**across([mine[s] - theirs[s] for s in common]), "seeds": common,
+                                        "of": key}
 
 
 def options_now(options: dict) -> dict:
@@ -339,8 +386,11 @@ def merge(parts: Sequence[dict]) -> dict:
                 per_seed[seed] = result
     seeds = sorted({int(s) for _, per_seed in configs.values() for s in per_seed})
     out = {"budget": {**first["budget"], "seeds": seeds}, "references": first["references"], "configs": {}}
+    if "test_references" in first:
+        out["test_references"] = first["test_references"]
     for name, (options, per_seed) in configs.items():
         out["configs"][name] = summarise(options, {s: per_seed[s] for s in sorted(per_seed, key=int)})
+    pair_with(out, "ppo")
     warnings = sorted({p["warning"] for p in parts if p.get("warning")})
     if warnings:
         out["warning"] = "; ".join(warnings)
@@ -358,9 +408,14 @@ def format_results(results: dict) -> str:
         ci = r["return"]["ci95"] or [float("nan")] * 2
         lines.append(f"{name:16s} {r['frames']:9d} {r['return']['mean']:8.3f} [{ci[0]:8.3f}, {ci[1]:8.3f}] "
                      f"{r['length']['mean']:9.1f}   " + ", ".join(f"{v:.2f}" for v in r["return"]["per_seed"]))
-    for name, row in (results["references"] or {}).items():
-        lines.append(f"{name:16s} {'-':>9s} {row['mean_return']:8.3f} [{row['ci95'][0]:8.3f}, {row['ci95'][1]:8.3f}] "
-                     f"{row['mean_length']:9.1f}   (95% CI over the games; no seed to vary)")
+        for key, label in (("test_return", "test games"), ("paired_vs_ppo", "paired vs ppo")):
+            if key in r:
+                tci = r[key]["ci95"] or [float("nan")] * 2
+                lines.append(f"  {label:14s} {'':>9s} {r[key]['mean']:8.3f} [{tci[0]:8.3f}, {tci[1]:8.3f}]")
+    for label, refs in (("", results["references"]), (" (test)", results.get("test_references"))):
+        for name, row in (refs or {}).items():
+            lines.append(f"{name + label:16s} {'-':>9s} {row['mean_return']:8.3f} [{row['ci95'][0]:8.3f}, "
+                         f"{row['ci95'][1]:8.3f}] {row['mean_length']:9.1f}   (95% CI over the games; no seed to vary)")
     return "\n".join(lines)
 
 
@@ -403,6 +458,9 @@ def main(argv=None) -> int:
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--full", action="store_true", help="the committed budget (default: a short check)")
     size.add_argument("--quick", action="store_true", help="a smoke test on the tiny preset")
+    size.add_argument("--budget", choices=["48k", "192k"], default=None,
+                      help="every game frame counted, pre-training data included (48 000 or 192 000), and the final "
+                           "figures from 128 test games (seeds 30000 and up)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds (default: 0-4)")
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS),
                         help="configurations to run, in this order (default: all)")
@@ -424,7 +482,8 @@ def main(argv=None) -> int:
     # Every seed of a configuration runs the same programs: compile each once.
     jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR")
                       or tempfile.mkdtemp(prefix="cdrl-controller-xla-"))
-    budget = BUDGETS["full" if args.full else "tiny" if args.quick else "default"]
+    budget_name = args.budget or ("full" if args.full else "tiny" if args.quick else "default")
+    budget = BUDGETS[budget_name]
     budget = dataclasses.replace(budget, level=canonical_level(args.level), preset=args.preset or budget.preset,
                                  max_filter=args.max_filter)
     work = Path(args.work_dir or tempfile.mkdtemp(prefix="cdrl-controller-"))
@@ -436,7 +495,7 @@ def main(argv=None) -> int:
             emit({**results, "partial": True}, args.out)
 
     results = run_experiment(args.configs, budget, args.seeds, work, on_config=partial)
-    results["budget"]["name"] = "full" if args.full else "quick" if args.quick else "default"
+    results["budget"]["name"] = "quick" if budget_name == "tiny" else budget_name
     warn_if_busy(results, load_start, os.getloadavg()[0])
     if args.figure:
         from cdrl.analysis.plots import save_figure
