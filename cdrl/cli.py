@@ -156,9 +156,10 @@ def _cmd_lr_search(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    for name in ("games", "every"):
-        if getattr(args, name) < 1:
-            print(f"cdrl eval: --{name} must be at least 1, got {getattr(args, name)}", file=sys.stderr)
+    for name, least in (("games", 1), ("every", 1), ("video_seed", 0)):
+        if getattr(args, name) < least:
+            print(f"cdrl eval: --{name.replace('_', '-')} must be at least {least}, got {getattr(args, name)}",
+                  file=sys.stderr)
             return 2
     if args.video and not args.policy:
         print("cdrl eval: --video records a game of a learned policy; give --policy RUN_DIR", file=sys.stderr)
@@ -184,7 +185,8 @@ def _cmd_eval(args) -> int:
 
 def _cmd_eval_policy(args) -> int:
     from cdrl.evaluation.play import format_table
-    from cdrl.runs.online import eval_policy_run, policy_run_video
+    from cdrl.analysis.policy_video import policy_run_video
+    from cdrl.runs.online import eval_policy_run
 
     try:
         rows = eval_policy_run(Path(args.policy), episodes=args.episodes)

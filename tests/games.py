@@ -35,6 +35,20 @@ def left_bonus_game():
     return g, g.default_params.replace(max_steps=np.int32(MAX_STEPS))
 
 
+def learned_and_random(learner, state, seeds):
+    """The `play.summarize` rows of the learner's noise-free policy and of the uniform-random
+    policy on the games `seeds` of the learner's game, each at most `MAX_STEPS` steps."""
+    from cdrl.evaluation import play
+    from envs.policies import get_policy
+
+    g, params = learner.game, learner.env_params
+    init, step, p = learner.policy(state)
+    learned = play.summarize(*play.play(g, params, init, step, seeds, MAX_STEPS, params=p))
+    uniform = get_policy("uniform")
+    return learned, play.summarize(*play.play(g, params, uniform.init, uniform.step, seeds, MAX_STEPS))
+
+
 # Not tests themselves, though a test module that imports them by name would collect them.
 test_game.__test__ = False
 left_bonus_game.__test__ = False
+learned_and_random.__test__ = False

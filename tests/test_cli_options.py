@@ -119,10 +119,13 @@ def test_lr_search_options_are_refused_by_name(stubbed, capsys, option):
                False, stubbed, capsys)
 
 
-@pytest.mark.parametrize("option", ["--episodes", "--horizon", "--context", "--games", "--every"])
+@pytest.mark.parametrize("option", ["--episodes", "--horizon", "--context", "--games", "--every", "--video-seed"])
 def test_eval_options_are_refused_by_name(stubbed, capsys, option):
     for value in VALUES:  # before the run is read: R does not exist
-        _check(["eval", "R", option, value], option[2:], False, stubbed, capsys)
+        if option != "--video-seed":
+            _check(["eval", "R", option, value], option[2:], False, stubbed, capsys)
+        elif value != "0":  # game 0 is a game
+            _check(["eval", "--policy", "R", "--video", option, value], option[2:], False, stubbed, capsys)
 
 
 @pytest.mark.parametrize("option", ["--episodes", "--seed", "--episode-steps", "--obs-size", "--batch-size",
@@ -155,7 +158,7 @@ def test_the_sweep_of_values_covers_every_numeric_option_of_every_command():
     assert numeric["train"] == numeric["sweep"] == run_options
     assert numeric["lr-search"] == (run_options - {"--lr", "--steps", "--diverge-threshold"}
                                     | {"--probe-steps", "--threshold", "--candidates"})
-    assert numeric["eval"] == {"--episodes", "--horizon", "--context", "--games", "--every"}
+    assert numeric["eval"] == {"--episodes", "--horizon", "--context", "--games", "--every", "--video-seed"}
     assert numeric["collect"] == {"--episodes", "--seed", "--episode-steps", "--obs-size", "--crop", "--batch-size",
                                   "--devices", "--max-filter"}
     assert numeric["plot"] == numeric["variants"] == set()

@@ -328,11 +328,7 @@ def test_the_controller_learns_a_trivially_learnable_reward(name):
     for _ in range(60):
         state, metrics = train_program(learner, state)
     assert float(metrics["controller_on"]) == 1.0 and not bool(metrics["diverged"])
-    g, params = learner.game, learner.env_params
-    init, step, p = learner.policy(state)
-    learned = play.summarize(*play.play(g, params, init, step, SEEDS, games.MAX_STEPS, params=p))
-    uniform = get_policy("uniform")
-    random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
+    learned, random = games.learned_and_random(learner, state, SEEDS)
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
 
 

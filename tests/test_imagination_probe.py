@@ -177,7 +177,7 @@ def test_the_video_shows_each_start_and_step_real_beside_imagined(tmp_path):
                        steps=3)
     np.testing.assert_array_equal(watched["real"][:, 2], 1.0)  # turn1 pays 1 a step
     np.testing.assert_array_equal(watched["imagined"][:, 2], 1.0)
-    path = iv.write_gif(iv.frame_images(watched, with_value=False), tmp_path / "imagination.gif")
+    path = iv.write_gif(iv.frame_images(watched, with_value=False), tmp_path / "imagination.gif", iv.FRAME_MS)
     with Image.open(path) as gif:
         assert (gif.n_frames, gif.size) == (6, (204, 510))
         first = np.asarray(gif.convert("L"))

@@ -18,7 +18,6 @@ from cdrl.learners.mpc_planner import plan, planner_fns
 from cdrl.models import TINY, StepInput, make_variant
 from cdrl.training import lookahead as la
 from cdrl.training.optim import HParams, OptHParams
-from envs.policies import get_policy
 
 B, HORIZON, GAMMA = 2, 3, 0.9
 SEEDS = np.arange(1000, 1016)
@@ -95,14 +94,10 @@ def test_a_learner_that_looks_ahead_learns_the_left_bonus(name, updates):
     for _ in range(updates):
         state, metrics = train_program(learner, state)
     assert not bool(metrics["diverged"]) and np.isfinite(float(metrics["terms"]["model_value_twohot"]))
-    g, params = learner.game, learner.env_params
-    init, step, p = learner.policy(state)
-    learned = play.summarize(*play.play(g, params, init, step, SEEDS, games.MAX_STEPS, params=p))
-    uniform = get_policy("uniform")
-    random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
+    learned, random = games.learned_and_random(learner, state, SEEDS)
     assert learned["ci95"][0] > random["ci95"][1] + 5.0, (learned, random)
-    if name == "mpc_planner":
-        assert init is planner_fns(learner.model, 3)[0]  # one compiled program per variant and horizon
+    if name == "mpc_planner":  # one compiled program per variant and horizon
+        assert learner.policy(state)[0] is planner_fns(learner.model, 3)[0]
 
 
 def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
@@ -111,7 +106,7 @@ def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
     buttons it pressed are the best plan's of the step before; the GIF has a frame a step."""
     from PIL import Image
 
-    from cdrl.analysis.imagination_video import write_gif
+    from cdrl.analysis.animation import write_gif
     from cdrl.analysis.policy_video import frame_images, record
 
     learner, state = _left_bonus_learner("mpc_planner", lookahead_steps=2, horizon=3)
@@ -129,5 +124,5 @@ def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
     clear = np.flatnonzero(top2[:-1, 1] - top2[:-1, 0] > 1e-4)  # no tie the planner's jitter breaks
     assert clear.size > n // 2
     np.testing.assert_array_equal(game["action"][clear + 1], rb.BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
-    path = write_gif(frame_images(game, "test"), tmp_path / "game.gif")
+    path = write_gif(frame_images(game, "test"), tmp_path / "game.gif", 100)
     assert Image.open(path).n_frames == n

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdrl.analysis.animation import write_gif
 from cdrl.evaluation import imagination_probe as ip
 
 CELL = 96  # the least side of a frame in the video; frames are scaled up by a whole factor
@@ -63,13 +64,6 @@ def frame_images(watched: dict, with_value: bool) -> list:
     return images
 
 
-def write_gif(images: list, path: Path, frame_ms: int = FRAME_MS) -> Path:
-    """`images` as an animated GIF at `path`, `frame_ms` per frame, looping."""
-    path = Path(path)
-    images[0].save(path, save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
-    return path
-
-
 def load_run(run_dir: Path):
     """(config, variant, parameters, step, game, game parameters) of a run the probe can read:
     a controller variant's world model on the built-in game, with a reward head. ValueError
@@ -116,7 +110,7 @@ def imagination_report(run_dir: Path, games: int = 32, every: int = 10, out: Pat
     if video:
         starts = max(1, min(WATCH_STARTS, max_steps // every - 1))
         watched = watch(variant, params, game, env_params, hp, starts=starts, every=every)
-        written.append(write_gif(frame_images(watched, hp is not None), run_dir / "imagination.gif"))
+        written.append(write_gif(frame_images(watched, hp is not None), run_dir / "imagination.gif", FRAME_MS))
     return result, written
 
 

@@ -4,7 +4,7 @@
 game and return for the same seed) and keeps every step: the game's screen, the view the
 policy sees, the buttons it pressed and the reward. A policy that reports its plans (the
 planner's state holds `scores`, one per button combination) has them kept too. `frame_images`
-draws each step; `cdrl.analysis.imagination_video.write_gif` writes the GIF.
+draws each step; `cdrl.analysis.animation.write_gif` writes the GIF.
 """
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cdrl.analysis.animation import write_gif
 from cdrl.data.frames import model_obs
+from cdrl.evaluation.play import TEST_SEED
 
 VIEW = 150  # the side the view is drawn at
 SCREEN_SHRINK = 2  # the raw screen (500 x 300) is drawn at half size
@@ -115,8 +117,20 @@ def frame_images(game_record: dict, title: str = "") -> list:
 def policy_video(game, env_params, policy: tuple, seed: int, max_steps: int, path: Path, arch=None,
                  title: str = "") -> dict:
     """Record one game (`record`) and write it to `path` as an animated GIF; returns the record."""
-    from cdrl.analysis.imagination_video import write_gif
-
     game_record = record(game, env_params, policy, seed, max_steps, arch)
     write_gif(frame_images(game_record, title), path, FRAME_MS)
     return game_record
+
+
+def policy_run_video(run_dir: Path, seed: int = TEST_SEED) -> Path:
+    """`cdrl eval --policy RUN_DIR --video`: one game (seed `seed`) of the run's learned policy,
+    noise-free (its latest good checkpoint), as RUN_DIR/policy.gif. Returns its path."""
+    from cdrl.runs.online import restore_learner
+    from cdrl.runs.rundir import RunDir
+
+    run = RunDir(run_dir)
+    cfg, learner, state = restore_learner(run)
+    path = run.path / "policy.gif"
+    policy_video(learner.game, learner.env_params, learner.policy(state), seed, cfg.episode_steps, path,
+                 arch=learner.arch, title=f"{learner.name} game {seed}")
+    return path

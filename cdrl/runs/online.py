@@ -24,7 +24,7 @@ import numpy as np
 
 from cdrl import learners
 from cdrl.evaluation.metrics import check_episodes, excess_ratio
-from cdrl.evaluation.play import EVAL_SEED, TEST_SEED, compare_policies, format_table
+from cdrl.evaluation.play import EVAL_SEED, compare_policies, format_table
 from cdrl.learners.api import Learner, train_program
 from cdrl.models import make_variant
 from cdrl.runs.checkpoint import Checkpoints
@@ -143,19 +143,6 @@ def restore_learner(run: RunDir) -> tuple[RunConfig, Learner, Any]:
     learner = build_learner(cfg)
     state, _ = run.read_checkpoints().restore_newest(jax.eval_shape(lambda: learner.init(jax.random.PRNGKey(cfg.seed))))
     return cfg, learner, state
-
-
-def policy_run_video(run_dir: Path, seed: int = TEST_SEED) -> Path:
-    """`cdrl eval --policy RUN_DIR --video`: one game (seed `seed`) of the run's learned policy,
-    noise-free, as RUN_DIR/policy.gif (`cdrl.analysis.policy_video`). Returns its path."""
-    from cdrl.analysis.policy_video import policy_video
-
-    run = RunDir(run_dir)
-    cfg, learner, state = restore_learner(run)
-    path = run.path / "policy.gif"
-    policy_video(learner.game, learner.env_params, learner.policy(state), seed, cfg.episode_steps, path,
-                 arch=learner.arch, title=f"{learner.name} game {seed}")
-    return path
 
 
 def eval_policy_run(run_dir: Path, episodes: int | None = None, seed: int = EVAL_SEED) -> dict[str, dict]:

@@ -122,6 +122,11 @@ CONFIGS: dict[str, dict] = {
                  "head_grad": 1e-4, "noise_std": 0.1, "warmup_steps": 0,
                  "pretrain": {"variant": "final_proposal", "learner": "world_model", "lookahead_steps": 3,
                               "head_grad": 1e-4}},
+    # The same on a world model whose pre-training also teaches the core the balanced reward.
+    "plan-pre-bal": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 5, "lookahead_steps": 3,
+                     "head_grad": 1e-4, "noise_std": 0.1, "warmup_steps": 0,
+                     "pretrain": {"variant": "final_proposal", "learner": "world_model", "lookahead_steps": 3,
+                                  "head_grad": 1e-4, "reward_balanced_weight": 0.003}},
     "ppo": {"learner": "ppo"},
     "ppo-10x": {"learner": "ppo", "frames_factor": 10},
 }
