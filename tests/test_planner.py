@@ -1,6 +1,7 @@
-"""The learners that look ahead through the model: the planner's scores against a plain
-written-out loop, and, on the left-bonus game, the planner and the ascent with the value at the
-end each beat the uniform-random policy."""
+"""The learners that look ahead through the model: the planner's scores and the imagined
+actor-critic's returns against plain written-out loops; on the left-bonus game, the planner and
+the ascent with the value at the end each beat the uniform-random policy; the policy video's
+recorder against `play`."""
 import itertools
 
 import jax
@@ -126,3 +127,31 @@ def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
     np.testing.assert_array_equal(game["action"][clear + 1], rb.BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
     path = write_gif(frame_images(game, "test"), tmp_path / "game.gif", 100)
     assert Image.open(path).n_frames == n
+
+
+def test_the_imagined_actor_critic_ends_its_returns_on_the_look_ahead_value():
+    """With the look-ahead heads, `imagination_ac`'s λ-returns take the reward head's rewards and
+    end on the value head's value (fitted to real returns): its imagined return equals the
+    λ-return written out step by step over the same imagined rollout."""
+    from cdrl.learners.imagination import imagine
+    from cdrl.learners.replay_base import critic_value, starts
+
+    learner, state = _left_bonus_learner("imagination_ac", lookahead_steps=2, horizon=3)
+    params = state.model.params
+    for i, head in enumerate(("reward", "value")):  # heads that predict something
+        p = params["lookahead"][head]["dense1"]
+        p["kernel"] = 0.3 * jax.random.normal(jax.random.PRNGKey(i + 1), p["kernel"].shape)
+    chunk, carry = state.replay.chunk(0)  # blank frames: the states still differ step by step
+    begin = starts(learner.model, params, chunk, carry)
+    key = jax.random.PRNGKey(7)
+    _, (_, terms) = learner.objective(params, state.critic, *begin, key)
+    traj = imagine(learner.model, 3, params, *begin, key, sample=True)
+    look, hp = learner.hp.model.lookahead, learner.hp
+    h = np.asarray(traj["h"])
+    rewards = _np_expected(params["lookahead"]["reward"], h, look.bin_values)
+    values = np.array(critic_value(state.critic, traj["h"]))
+    values[-1] = _np_expected(params["lookahead"]["value"], h[-1], look.bin_values)
+    ret = values[-1]
+    for k in reversed(range(3)):
+        ret = rewards[k] + float(hp.gamma) * ((1 - float(hp.lam)) * values[k] + float(hp.lam) * ret)
+    assert float(terms["imagined_return"]) == pytest.approx(float(np.mean(ret)), rel=1e-4, abs=1e-5)

@@ -6,6 +6,10 @@ drawn from Bernoulli(ã). A critic V(h) on the core's output learns the imagined
 actor learns by REINFORCE with the returns normalised by their 5-95 % range (at least 1), plus
 an entropy bonus. The model never sees the controller's gradient, so it cannot predict more
 reward to please it.
+
+Where the model trains the look-ahead heads (`--lookahead-steps`), the imagined rewards are
+the reward head's and the λ-returns end on the value head's value, which is fitted to real
+λ-returns: the critic's targets then rest on real returns too.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ import jax.numpy as jnp
 
 from cdrl.learners.imagination import ImaginationLearner, imagine
 from cdrl.learners.replay_base import button_entropy, button_log_prob, critic_value
+from cdrl.training import lookahead
 from cdrl.training.lookahead import lambda_returns
 
 
@@ -26,9 +31,15 @@ class ImaginationAC(ImaginationLearner):
         """(actor loss, (critic loss, terms)) of one imagined rollout from every start."""
         hp = self.hp
         traj = imagine(self.model, self.config.horizon, params, carry, action, frame, key, sample=True)
-        values = critic_value(critic, jax.lax.stop_gradient(traj["h"]))  # V after each imagined step
-        rewards = jax.lax.stop_gradient(traj["reward"])
-        rets = jax.lax.stop_gradient(lambda_returns(rewards, values, values[-1], hp.gamma, hp.lam))
+        h = jax.lax.stop_gradient(traj["h"])
+        values = critic_value(critic, h)  # V after each imagined step
+        rewards, ends = traj["reward"], values
+        look = hp.model.lookahead
+        if look is not None and "lookahead" in params:  # the heads' reward, and their value at the end
+            heads = params["lookahead"]
+            rewards = lookahead.reward(heads, h, look)
+            ends = values.at[-1].set(lookahead.value(heads, h[-1], look))
+        rets = jax.lax.stop_gradient(lambda_returns(rewards, ends, ends[-1], hp.gamma, hp.lam))
         h0 = jax.lax.stop_gradient(self.model.features(carry))
         base = critic_value(critic, h0)  # V of the state each step's buttons were drawn in
         before = jnp.concatenate([base[None], values[:-1]], axis=0)
