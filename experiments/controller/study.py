@@ -27,6 +27,11 @@ greedy buttons. The reference policies play the same games once: they do not lea
   critic-pre-bal  `critic` on `real-pre-all-bal`'s world model (the same pre-training): does the
                 actor-critic in imagination control where the one on real returns does?
   value-pre     `critic-pre` with the one-step value learner (`--controller value`)
+  plan-pre      model-predictive control (`--learner mpc_planner`, 5-step plans, the value at the end)
+                on a world model pre-trained with the look-ahead heads (`--lookahead-steps 3`)
+  plan-pre-bal  the same, its pre-training also teaching the balanced reward (as `-bal` above)
+  imagine-look-pre-bal, critic-look-pre-bal  `imagine` and `critic` on `plan-pre-bal`'s world model
+                (5 imagined steps and the value head's value at the end)
   ppo           PPO at the same game frames; ppo-10x at ten times them
 
 Runs live under a work directory, one per configuration and seed (`NAME/seedS`); a finished
@@ -88,6 +93,11 @@ from envs.slither import canonical_level
 if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+LOOK = {"horizon": 5, "lookahead_steps": 3, "head_grad": 1e-4}
+LOOK_PRETRAIN = {"lookahead_steps": 3, "head_grad": 1e-4}
+LOOK_PRETRAIN_BAL = {"variant": "final_proposal", "learner": "world_model", **LOOK_PRETRAIN,
+                     "reward_balanced_weight": 0.003}
+
 # name -> options of the run (RunConfig fields) besides the budget's; `frames_factor` scales
 # the budget's game frames; `pretrain` first trains the world model offline for the budget's
 # `pretrain_steps` (RunConfig fields of that run).
@@ -117,16 +127,17 @@ CONFIGS: dict[str, dict] = {
                        "pretrain": {"variant": "final_proposal", "learner": "world_model", "reward_balanced_weight": 0.003}},
     "real-all": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
                  "warmup_steps": 0, "optimizer": "adam", "lr": 1e-3},
-    # Model-predictive control on a world model trained to look ahead (reward and value heads).
-    "plan-pre": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 5, "lookahead_steps": 3,
-                 "head_grad": 1e-4, "noise_std": 0.1, "warmup_steps": 0,
-                 "pretrain": {"variant": "final_proposal", "learner": "world_model", "lookahead_steps": 3,
-                              "head_grad": 1e-4}},
-    # The same on a world model whose pre-training also teaches the core the balanced reward.
-    "plan-pre-bal": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 5, "lookahead_steps": 3,
-                     "head_grad": 1e-4, "noise_std": 0.1, "warmup_steps": 0,
-                     "pretrain": {"variant": "final_proposal", "learner": "world_model", "lookahead_steps": 3,
-                                  "head_grad": 1e-4, "reward_balanced_weight": 0.003}},
+    # The learners that look ahead, on a world model trained with the look-ahead heads (`LOOK`):
+    # model-predictive control, the ascent and the actor-critic in imagination, each with the
+    # value at the end of 5 imagined steps. `-bal`: the pre-training teaches the balanced reward too.
+    "plan-pre": {"variant": "final_proposal", "learner": "mpc_planner", **LOOK, "noise_std": 0.1, "warmup_steps": 0,
+                 "pretrain": {"variant": "final_proposal", "learner": "world_model", **LOOK_PRETRAIN}},
+    "plan-pre-bal": {"variant": "final_proposal", "learner": "mpc_planner", **LOOK, "noise_std": 0.1,
+                     "warmup_steps": 0, "pretrain": LOOK_PRETRAIN_BAL},
+    "imagine-look-pre-bal": {"variant": "final_proposal", "learner": "imagined_ascent", **LOOK,
+                             "pretrain": LOOK_PRETRAIN_BAL},
+    "critic-look-pre-bal": {"variant": "final_proposal", "learner": "imagination_ac", **LOOK,
+                            "pretrain": LOOK_PRETRAIN_BAL},
     "ppo": {"learner": "ppo"},
     "ppo-10x": {"learner": "ppo", "frames_factor": 10},
 }
