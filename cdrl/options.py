@@ -94,6 +94,9 @@ class LossOptions:
     multistep: str = _opt("1", "offline runs: multi-step training: K feeds the model its own prediction between "
                                "real frames every K steps of a chunk (1: teacher forcing); 'K1,K2,...' a "
                                "curriculum over equal parts of --steps (Oh et al. 2015: 1,3,5)")
+    mirror_streams: bool = _opt(False, "offline runs on the built-in game: the second half of the B streams sees its "
+                                       "episodes mirrored left to right, the turn buttons swapped (the game's "
+                                       "symmetry: no game frame more; a model cannot learn to prefer one turn)")
     lookahead_steps: int = _opt(0, "controller variants, offline and the replay learners: K imagined steps from real "
                                    "states, each scored against the real frame and reward, with reward, continuation "
                                    "and value heads on the model's state (cdrl.training.lookahead; 0: off; TD-MPC2 "

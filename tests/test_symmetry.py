@@ -233,3 +233,41 @@ def test_the_flow_camera_shows_the_heading_cameras_view_from_the_pixels():
     to_heading, to_north = error(shown, heading_view), error(north_view, heading_view)
     assert np.median(to_heading) < 0.005 and np.percentile(to_heading, 90) < 0.01  # measured: 0.003, 0.007
     assert np.median(to_north) > 0.03
+
+
+@pytest.mark.parametrize("streams", [4, 3])
+def test_an_offline_run_with_mirror_streams_sees_half_its_streams_in_a_mirror(streams):
+    """`--mirror-streams`: the loss of a chunk is the plain loss of the chunk whose second half
+    of streams was mirrored by hand (columns reversed, right and left swapped); an online run is
+    refused by name."""
+    from cdrl.data.stream import Chunk
+    from cdrl.models import TINY, make_variant
+    from cdrl.runs.config import RunConfig
+    from cdrl.training.optim import HParams
+    from cdrl.training.step import chunk_loss
+
+    v = make_variant("reward_prediction", TINY)
+    params = v.init(jax.random.PRNGKey(0))
+    rng = np.random.default_rng(0)
+    t, s = 5, TINY.image_size
+    frames = rng.uniform(size=(t + 1, streams, s, s)).astype(np.float32)
+    action = (rng.uniform(size=(t, streams, 3)) > 0.5).astype(np.float32)
+    reward = rng.normal(size=(t, streams)).astype(np.float32)
+    first = np.zeros((t, streams), bool)
+    first[0] = True
+    chunk = Chunk(obs=frames[:-1], next_obs=frames[1:], action=action, reward=reward, is_first=first)
+    by_hand = frames.copy()
+    buttons = action.copy()
+    for b in range(streams // 2 + streams % 2, streams):  # the last B // 2 streams
+        by_hand[:, b] = frames[:, b, :, ::-1]
+        buttons[:, b] = action[:, b][:, [1, 0, 2]]
+    mirrored = Chunk(obs=by_hand[:-1], next_obs=by_hand[1:], action=buttons, reward=reward, is_first=first)
+    carry = v.init_carry(streams)
+    loss, _ = chunk_loss(v, params, carry, HParams.create(v, mirror=True), chunk)
+    expected, _ = chunk_loss(v, params, carry, HParams.create(v), mirrored)
+    np.testing.assert_allclose(float(loss), float(expected), rtol=1e-6)
+    unmirrored, _ = chunk_loss(v, params, carry, HParams.create(v), chunk)
+    assert abs(float(unmirrored) - float(loss)) > 1e-6  # the mirror changed what the model saw
+    assert RunConfig(variant="main", mirror_streams=True).hparams(make_variant("main", TINY)).mirror
+    with pytest.raises(ValueError, match="mirror_streams"):
+        RunConfig(variant="final_proposal", learner="imagination_ac", mirror_streams=True)

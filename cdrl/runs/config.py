@@ -63,6 +63,10 @@ class _RunConfigMethods:
                              f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
         if self.lookahead_steps > 0:
             self.check_lookahead()
+        if self.mirror_streams and (self.kind != "offline" or self.data != "game" or self.batch < 2):
+            raise ValueError(f"mirror_streams mirrors half of an offline run's streams of the built-in game (a {self.kind} "
+                             f"run on data {self.data!r} with batch {self.batch}): it needs learner world_model or a "
+                             "variant without a controller, data 'game' and batch >= 2")
         takes_balanced = (self.kind != "model_free" and VARIANTS[self.variant].predicts_reward
                           and not (self.kind == "online" and self.learner == "thesis_ascent"))
         if self.reward_balanced_weight > 0 and not takes_balanced:
@@ -173,7 +177,7 @@ class _RunConfigMethods:
                            value_twohot=self.value_weight)
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
                               loss_weights=weights or None, feed_every=ks[0],
-                              fed=max(ks) > 1 if fed is None else fed, lookahead=heads)
+                              fed=max(ks) > 1 if fed is None else fed, lookahead=heads, mirror=self.mirror_streams)
 
 
 def _fields() -> list[tuple]:

@@ -133,6 +133,8 @@ class HParams:
     feed_every: jax.Array
     lookahead: Any = None  # `cdrl.training.lookahead.LookaheadHParams`: its losses and heads (None: off)
     fed: bool = flax.struct.field(pytree_node=False, default=False)
+    # The second half of a chunk's streams is seen in a mirror (`cdrl.training.step.mirrored_streams`).
+    mirror: bool = flax.struct.field(pytree_node=False, default=False)
 
     @classmethod
     def create(
@@ -146,10 +148,12 @@ class HParams:
         feed_every: int = 1,
         fed: bool | None = None,
         lookahead=None,
+        mirror: bool = False,
     ) -> "HParams":
         """`opt`: the optimiser's numbers (default: SGD with `lr` and `momentum`, which it
         replaces). `fed` defaults to `feed_every > 1`; a curriculum that starts at K 1 sets it.
-        `lookahead`: a `LookaheadHParams` (its terms' weights default to its `default_weights`)."""
+        `lookahead`: a `LookaheadHParams` (its terms' weights default to its `default_weights`).
+        `mirror`: the second half of every chunk's streams is seen mirrored."""
         weights = dict(variant.default_loss_weights())
         if lookahead is not None:
             if feed_every > 1 or fed:
@@ -168,7 +172,8 @@ class HParams:
         if feed_every < 1:
             raise ValueError(f"feed_every must be >= 1 (1: teacher forcing), got {feed_every}")
         return cls(opt, {k: f32(v) for k, v in weights.items()}, f32(diverge_threshold),
-                   jnp.asarray(feed_every, jnp.int32), lookahead, fed=feed_every > 1 if fed is None else fed)
+                   jnp.asarray(feed_every, jnp.int32), lookahead, fed=feed_every > 1 if fed is None else fed,
+                   mirror=mirror)
 
     @property
     def lr(self) -> jax.Array:

@@ -85,12 +85,29 @@ def step_inputs(chunk: Chunk) -> StepInput:
     return StepInput(obs=as_float(chunk.obs), action=chunk.action.astype(jnp.float32), is_first=chunk.is_first)
 
 
+def mirrored_streams(chunk: Chunk) -> Chunk:
+    """The chunk with its second half of streams (b >= B - B // 2) seen in a mirror: frames
+    reversed left to right, the turn buttons swapped (`envs.symmetry.MIRRORED_BUTTONS`). The
+    game is symmetric, so a mirrored episode is one it could play. A stream keeps its side for
+    every chunk, so the carry it hands on saw the same side."""
+    from envs.symmetry import MIRRORED_BUTTONS
+
+    b = chunk.obs.shape[1]
+    flip = jnp.arange(b) >= b - b // 2
+    frames = lambda x: jnp.where(flip[None, :, None, None], x[..., ::-1], x)  # noqa: E731
+    action = jnp.where(flip[None, :, None], chunk.action[..., jnp.asarray(MIRRORED_BUTTONS)], chunk.action)
+    return chunk.replace(obs=frames(chunk.obs), next_obs=frames(chunk.next_obs), action=action)
+
+
 def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
     """Weighted loss of one chunk from `carry`, which is cut from the graph (TBPTT); with
-    `hp.fed`, the model is fed its own predictions between real frames (`HParams.feed_every`).
+    `hp.fed`, the model is fed its own predictions between real frames (`HParams.feed_every`);
+    with `hp.mirror`, half of the streams see the game in a mirror (`mirrored_streams`).
 
     Returns `(loss, (final_carry, terms, outputs))`.
     """
+    if hp.mirror:
+        chunk = mirrored_streams(chunk)
     carry = jax.lax.stop_gradient(carry)
     xs = step_inputs(chunk)
     next_obs = as_float(chunk.next_obs)

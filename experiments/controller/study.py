@@ -30,6 +30,7 @@ greedy buttons. The reference policies play the same games once: they do not lea
   plan-pre      model-predictive control (`--learner mpc_planner`, 5-step plans, the value at the end)
                 on a world model pre-trained with the look-ahead heads (`--lookahead-steps 3`)
   plan-pre-bal  the same, its pre-training also teaching the balanced reward (as `-bal` above)
+  plan-pre-bal-mirror  the same, half of its pre-training's streams seen in a mirror (`--mirror-streams`)
   imagine-look-pre-bal, critic-look-pre-bal  `imagine` and `critic` on `plan-pre-bal`'s world model
                 (5 imagined steps and the value head's value at the end)
   ppo           PPO at the same game frames; ppo-10x at ten times them
@@ -134,6 +135,8 @@ CONFIGS: dict[str, dict] = {
                  "pretrain": {"variant": "final_proposal", "learner": "world_model", **LOOK_PRETRAIN}},
     "plan-pre-bal": {"variant": "final_proposal", "learner": "mpc_planner", **LOOK, "noise_std": 0.1,
                      "warmup_steps": 0, "pretrain": LOOK_PRETRAIN_BAL},
+    "plan-pre-bal-mirror": {"variant": "final_proposal", "learner": "mpc_planner", **LOOK, "noise_std": 0.1,
+                            "warmup_steps": 0, "pretrain": {**LOOK_PRETRAIN_BAL, "mirror_streams": True}},
     "imagine-look-pre-bal": {"variant": "final_proposal", "learner": "imagined_ascent", **LOOK,
                              "pretrain": LOOK_PRETRAIN_BAL},
     "critic-look-pre-bal": {"variant": "final_proposal", "learner": "imagination_ac", **LOOK,
