@@ -319,7 +319,9 @@ def _filled(state):
                      filled=jnp.ones((), jnp.int32))
 
 
-@pytest.mark.parametrize("name", ["imagination_ac", "one_step_q", "onpolicy_ac"])
+# The learners that do not steer the real game learn it in the end-to-end tier (make test's time).
+@pytest.mark.parametrize("name", [pytest.param("imagination_ac", marks=pytest.mark.e2e),
+                                  pytest.param("one_step_q", marks=pytest.mark.e2e), "onpolicy_ac"])
 def test_the_controller_learns_a_trivially_learnable_reward(name):
     """With a bonus for turning left, the actor-critic in imagination, the action values read
     one model step ahead and the actor-critic on the real chunks teach the controller to turn

@@ -86,7 +86,7 @@ def _left_bonus_learner(name: str, lookahead_steps: int, horizon: int):
     return learner, learner.init(jax.random.PRNGKey(0))
 
 
-@pytest.mark.parametrize("name, updates", [("mpc_planner", 15), ("imagined_ascent", 60)])
+@pytest.mark.parametrize("name, updates", [("mpc_planner", 15), ("imagined_ascent", 20)])
 def test_a_learner_that_looks_ahead_learns_the_left_bonus(name, updates):
     """With a bonus for turning left, the planner (three steps, the value at the end) and the
     ascent through imagined rollouts (five steps, the value at the end), their world models
