@@ -12,6 +12,9 @@ step are B x T (the games' steps). Learners (`--learners`, any subset):
   real      final_proposal with the replay buffer, 4 model updates a chunk and the actor-critic
             on the chunk just played (`--controller real --scope all`)
   ppo       PPO's program at its own 16 games x 32 steps
+  critic-look  the actor-critic in imagination, 5 imagined steps, its model trained with the
+            look-ahead (`--lookahead-steps 3`)
+  planner   `mpc_planner` on the same model: 8 plans of 5 imagined steps at every game step
 
 at the presets of `--presets` (small, thesis). The first step's seconds are reported as its
 compile time (JAX's persistent cache off: a real compile).
@@ -45,6 +48,8 @@ LEARNERS = {
     "rollout-all": dict(variant="final_proposal", controller="rollout", scope="all", warmup_steps=0),
     "real": dict(variant="final_proposal", controller="real", scope="all"),
     "ppo": dict(variant="ppo"),
+    "critic-look": dict(variant="final_proposal", learner="imagination_ac", horizon=5, lookahead_steps=3),
+    "planner": dict(variant="final_proposal", learner="mpc_planner", horizon=5, lookahead_steps=3),
 }
 
 
