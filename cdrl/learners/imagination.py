@@ -39,6 +39,17 @@ def imagine(variant: Variant, horizon: int, params, carry, action, frame, key, s
     return traj
 
 
+def lookahead_heads(look, params):
+    """The look-ahead heads in `params` where the model trains them (`look`, its numbers), else None."""
+    return params["lookahead"] if look is not None and "lookahead" in params else None
+
+
+def imagination_config(cfg) -> ImaginationConfig:
+    """The static shape of a run of `cfg` (`cdrl.runs.config.RunConfig`) that imagines."""
+    return ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
+                             model_updates=cfg.model_updates, horizon=cfg.horizon)
+
+
 def imagined_return(look, params, rewards, h, gamma):
     """Σ_k γ^k r̃_{k+1} + γ^H V(h_H) of imagined steps (`rewards`, states `h`, leading axis H):
     the rewards and the value of the look-ahead heads where the model has them (`look`, the
@@ -46,9 +57,9 @@ def imagined_return(look, params, rewards, h, gamma):
     value at the end."""
     horizon = rewards.shape[0]
     discount = gamma ** jnp.arange(horizon, dtype=jnp.float32).reshape((horizon,) + (1,) * (rewards.ndim - 1))
-    if look is None or "lookahead" not in params:
+    heads = lookahead_heads(look, params)
+    if heads is None:
         return jnp.sum(discount * rewards, axis=0)
-    heads = params["lookahead"]
     rewards = lookahead.reward(heads, h, look)
     return jnp.sum(discount * rewards, axis=0) + gamma ** horizon * lookahead.value(heads, h[-1], look)
 
@@ -60,9 +71,7 @@ class ImaginationLearner(ReplayLearner):
 
     @classmethod
     def from_run(cls, cfg, model, game, env_params):
-        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
-                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
-        return cls(model, game, config, cls.hparams(cfg, model), env_params)
+        return cls(model, game, imagination_config(cfg), cls.hparams(cfg, model), env_params)
 
     def objective(self, params, critic, carry, action, frame, key):
         raise NotImplementedError

@@ -16,7 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from cdrl.learners.imagination import ImaginationLearner, imagine
+from cdrl.learners.imagination import ImaginationLearner, imagine, lookahead_heads
 from cdrl.learners.replay_base import button_entropy, button_log_prob, critic_value
 from cdrl.training import lookahead
 from cdrl.training.lookahead import lambda_returns
@@ -35,8 +35,8 @@ class ImaginationAC(ImaginationLearner):
         values = critic_value(critic, h)  # V after each imagined step
         rewards, ends = traj["reward"], values
         look = hp.model.lookahead
-        if look is not None and "lookahead" in params:  # the heads' reward, and their value at the end
-            heads = params["lookahead"]
+        heads = lookahead_heads(look, params)
+        if heads is not None:  # the heads' reward, and their value at the end
             rewards = lookahead.reward(heads, h, look)
             ends = values.at[-1].set(lookahead.value(heads, h[-1], look))
         rets = jax.lax.stop_gradient(lambda_returns(rewards, ends, ends[-1], hp.gamma, hp.lam))

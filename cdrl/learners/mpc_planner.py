@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from cdrl.data.frames import model_obs
 from cdrl.learners.game_batch import Observation
-from cdrl.learners.imagination import ImaginationConfig, imagined_return
+from cdrl.learners.imagination import imagination_config, imagined_return
 from cdrl.learners.replay_base import BUTTON_COMBOS, ReplayLearner, ReplayState, draw_buttons
 from cdrl.models.base import StepInput, Variant
 
@@ -84,9 +84,7 @@ class MPCPlanner(ReplayLearner):
 
     @classmethod
     def from_run(cls, cfg, model, game, env_params):
-        config = ImaginationConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
-                                   model_updates=cfg.model_updates, horizon=cfg.horizon)
-        return cls(model, game, config, cls.hparams(cfg, model), env_params)
+        return cls(model, game, imagination_config(cfg), cls.hparams(cfg, model), env_params)
 
     def act(self, state: ReplayState, obs: Observation, key: jax.Array, explore=None):
         """Execute the pending buttons; the model sees o_t and them. The buttons executed next
