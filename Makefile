@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test test-e2e install bench notebooks clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py csrc/onednn_conv.cc
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
 	$(VENV)/bin/python -m pip install --quiet -e ".[test,bench]"

@@ -53,6 +53,9 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--inner", type=int, default=3, help="calls per repeat (their median is the repeat's time)")
     ap.add_argument("--torch-threads", type=int, default=None, help="default os.cpu_count()")
     ap.add_argument("--bf16", action="store_true", help="also time cdrl's layers on bfloat16 arrays")
+    ap.add_argument("--onednn", action="store_true",
+                    help="also time every convolution with cdrl's oneDNN backend (`--conv onednn`) beside its XLA "
+                         "one, after every torch row")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     for name in ("unroll", "repeats", "inner"):
@@ -88,7 +91,9 @@ def _layers(arch):
     return out
 
 
-def _cdrl_layer(kind, spec, selu: bool, input_grad: bool):
+def _cdrl_layer(kind, spec, selu: bool, input_grad: bool, backend: str = "auto"):
+    """The layer's jitted forward and forward + backward, its convolution on `backend`
+    (`cdrl.models.conv.formulation`)."""
     import jax
     import jax.numpy as jnp
 
@@ -97,7 +102,7 @@ def _cdrl_layer(kind, spec, selu: bool, input_grad: bool):
     op = nets.conv2d if kind == "conv" else nets.conv_transpose
 
     def fwd(x, k, b):
-        y = op(x, k, spec.stride, spec.padding) + b
+        y = op(x, k, spec.stride, spec.padding, backend) + b
         return jax.nn.selu(y) if selu else y
 
     def fwd_bwd(x, k, b, ct):
@@ -114,7 +119,9 @@ def _torch_layer(kind, spec, c_in, c_out):
     return cls(c_in, c_out, spec.kernel, spec.stride, spec.padding)
 
 
-def bench_conv(layer, n: int, args) -> dict:
+def bench_conv(layer, n: int, args, onednn: bool = False) -> dict:
+    """One convolution layer: cdrl (XLA's formulation) against torch; with `onednn`, cdrl's
+    oneDNN backend against cdrl's XLA formulation instead (no torch: see `main`)."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -158,7 +165,15 @@ def bench_conv(layer, n: int, args) -> dict:
         jax.block_until_ready(fwd_bwd(jx, jk, jb, jct))
 
     fns = {"cdrl": {"fwd": c_fwd, "fwd_bwd": c_fwd_bwd}, "torch": {"fwd": t_fwd, "fwd_bwd": t_fwd_bwd}}
-    extra = _bf16_fns(fns, fwd, fwd_bwd, (jx, jk, jb), (jct,)) if args.bf16 else {}
+    extra = _bf16_fns(fns, fwd, fwd_bwd, (jx, jk, jb), (jct,)) if args.bf16 and not onednn else {}
+    if onednn:  # the same layer with oneDNN's convolutions, checked against XLA's
+        o_fwd, o_fwd_bwd = _cdrl_layer(kind, spec, selu, input_grad, "onednn")
+        del fns["torch"]
+        fns["cdrl_onednn"] = {"fwd": lambda: jax.block_until_ready(o_fwd(jx, jk, jb)),
+                              "fwd_bwd": lambda: jax.block_until_ready(o_fwd_bwd(jx, jk, jb, jct))}
+        for got, want in zip(jax.tree.leaves(o_fwd_bwd(jx, jk, jb, jct)), jax.tree.leaves(fwd_bwd(jx, jk, jb, jct))):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-3,
+                                       atol=1e-3 * float(np.abs(np.asarray(want)).max()))
     # Same function: cdrl's forward equals torch's (a wrong formulation must not be timed).
     np.testing.assert_allclose(np.asarray(fwd(jx, jk, jb)), t_fwd().numpy().transpose(0, 2, 3, 1),
                                rtol=2e-3, atol=2e-3 * float(np.abs(ct).max()))
@@ -270,9 +285,14 @@ def _time_pairs(fns: dict, args) -> dict:
         fb = statistics.median(times[(fw, "fwd_bwd")])
         out[fw] = {"fwd_ms": 1e3 * f, "bwd_ms": 1e3 * (fb - f), "fwd_bwd_ms": 1e3 * fb,
                    "fwd_bwd_ms_spread": {k: 1e3 * v for k, v in spread(times[(fw, "fwd_bwd")]).items()}}
-    out["ratio_fwd"] = out["torch"]["fwd_ms"] / out["cdrl"]["fwd_ms"]
-    out["ratio_fwd_bwd"] = out["torch"]["fwd_bwd_ms"] / out["cdrl"]["fwd_bwd_ms"]
-    out["ratio_fwd_bwd_repeats"] = [t / c for c, t in zip(times[("cdrl", "fwd_bwd")], times[("torch", "fwd_bwd")])]
+    if "torch" in fns:
+        out["ratio_fwd"] = out["torch"]["fwd_ms"] / out["cdrl"]["fwd_ms"]
+        out["ratio_fwd_bwd"] = out["torch"]["fwd_bwd_ms"] / out["cdrl"]["fwd_bwd_ms"]
+        out["ratio_fwd_bwd_repeats"] = [t / c for c, t in zip(times[("cdrl", "fwd_bwd")], times[("torch", "fwd_bwd")])]
+    if "cdrl_onednn" in fns:  # > 1: oneDNN's convolutions faster than XLA's
+        out["ratio_onednn_vs_xla"] = out["cdrl"]["fwd_bwd_ms"] / out["cdrl_onednn"]["fwd_bwd_ms"]
+        out["ratio_onednn_vs_xla_repeats"] = [x / o for x, o in zip(times[("cdrl", "fwd_bwd")],
+                                                                     times[("cdrl_onednn", "fwd_bwd")])]
     if "cdrl_bf16" in fns:
         out["ratio_bf16"] = out["cdrl"]["fwd_bwd_ms"] / out["cdrl_bf16"]["fwd_bwd_ms"]
         out["ratio_bf16_repeats"] = [c / h for c, h in zip(times[("cdrl", "fwd_bwd")], times[("cdrl_bf16", "fwd_bwd")])]
@@ -297,18 +317,33 @@ def main() -> None:
             _print_row(rows[-1])
         rows.append(bench_lstm(arch, args.unroll, B, args) | {"batch": B})
         _print_row(rows[-1])
+    if args.onednn:
+        # After every torch row: PyTorch shares oneDNN's OpenMP runtime, and the OpenMP teams that
+        # oneDNN starts from XLA's threads make it throttle PyTorch's spin-waits from then on.
+        for B in args.batches:
+            for layer in _layers(arch):
+                row = next(r for r in rows if r["batch"] == B and r["layer"] == layer[0])
+                beside = bench_conv(layer, args.unroll * B, args, onednn=True)
+                row.update(cdrl_onednn=beside["cdrl_onednn"], cdrl_beside_onednn=beside["cdrl"],
+                           ratio_onednn_vs_xla=beside["ratio_onednn_vs_xla"],
+                           ratio_onednn_vs_xla_repeats=beside["ratio_onednn_vs_xla_repeats"],
+                           ratio_onednn_fwd_bwd=row["torch"]["fwd_bwd_ms"] / beside["cdrl_onednn"]["fwd_bwd_ms"])
+                _print_onednn_row(row)
     res = {"benchmark": "layer_timings", "preset": args.preset, "unroll": args.unroll, "batches": args.batches,
            "repeats": args.repeats, "inner": args.inner, "cpu_count": os.cpu_count(),
            "torch_threads": torch.get_num_threads(), "jax_version": jax.__version__, "bf16": args.bf16,
-           "cpu_bf16_support": _cpu_bf16_flags(),
+           "cpu_bf16_support": _cpu_bf16_flags(), "onednn": args.onednn,
            "torch_version": torch.__version__, "load_avg_start": load_start, "rows": rows}
     for B in args.batches:
         sel = [r for r in rows if r["batch"] == B]
         res[f"total_B{B}"] = {fw: sum(r[fw]["fwd_bwd_ms"] for r in sel) for fw in ("cdrl", "torch", "cdrl_bf16")
                               if fw in sel[0]}
+        if args.onednn:  # the LSTM row has no convolution: its XLA time
+            res[f"total_B{B}"]["cdrl_onednn"] = sum(r.get("cdrl_onednn", r["cdrl"])["fwd_bwd_ms"] for r in sel)
         print(f"B {B}: sum of rows fwd+bwd: cdrl {res[f'total_B{B}']['cdrl']:.1f} ms, "
               f"torch {res[f'total_B{B}']['torch']:.1f} ms"
-              + (f", cdrl in bfloat16 {res[f'total_B{B}']['cdrl_bf16']:.1f} ms" if args.bf16 else ""))
+              + (f", cdrl in bfloat16 {res[f'total_B{B}']['cdrl_bf16']:.1f} ms" if args.bf16 else "")
+              + (f", cdrl on oneDNN {res[f'total_B{B}']['cdrl_onednn']:.1f} ms" if args.onednn else ""))
     res["load_avg_end"] = os.getloadavg()[0]
     warn_if_busy(res, load_start, res["load_avg_end"])
     emit(res, args.out)
@@ -321,6 +356,13 @@ def _cpu_bf16_flags() -> list[str]:
     except (OSError, StopIteration):
         return []
     return sorted(f for f in flags.split(":", 1)[1].split() if f in ("avx512_bf16", "amx_bf16", "amx_tile"))
+
+
+def _print_onednn_row(r: dict) -> None:
+    o, x = r["cdrl_onednn"], r["cdrl_beside_onednn"]
+    print(f"B {r['batch']:2d} {r['layer']:6s} oneDNN fwd {o['fwd_ms']:7.2f} bwd {o['bwd_ms']:7.2f} ms | beside it XLA "
+          f"fwd {x['fwd_ms']:7.2f} bwd {x['bwd_ms']:7.2f} ms | fwd+bwd XLA/oneDNN {r['ratio_onednn_vs_xla']:5.2f}, "
+          f"torch/oneDNN {r['ratio_onednn_fwd_bwd']:5.2f}", flush=True)
 
 
 def _print_row(r: dict) -> None:

@@ -82,12 +82,14 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import dataclasses
 import gc
 import os
 import platform
 import statistics
 import sys
 import time
+import types
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -103,14 +105,17 @@ _FAST_COMPILE = {"xla_backend_optimization_level": 0}
 # The cdrl / torch training-throughput targets (README "Against PyTorch"), defined for the
 # thesis-sized model: (variant, B) -> minimum ratio, None meaning any B.
 TARGETS = {("main", None): 1.0, ("closed_loop_minus", 1): 1.5}
+# With oneDNN's convolutions (`--onednn`): cdrl_onednn / torch.
+ONEDNN_TARGETS = {("main", None): 1.3, ("closed_loop_minus", None): 1.5}
+ONEDNN_GROWTH_TARGET = 0.9  # cdrl_onednn's peak memory growth at the largest B / torch's
 TARGET_PRESET = "thesis"
 COMPILE_TARGET_S = 30.0
 
 
-def target_for(preset_name: str, variant: str, batch: int) -> float | None:
+def target_for(preset_name: str, variant: str, batch: int, targets: dict = TARGETS) -> float | None:
     if preset_name != TARGET_PRESET:
         return None
-    return TARGETS.get((variant, batch), TARGETS.get((variant, None)))
+    return targets.get((variant, batch), targets.get((variant, None)))
 
 
 def ratio_fields(ratios: list[float], target: float | None) -> dict:
@@ -140,6 +145,9 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--online-batches", type=int, nargs="+", default=None,
                     help="numbers of games for final_proposal's online training (default: --batches; --quick: the smallest of --batches)")
     ap.add_argument("--skip-online", action="store_true", help="leave out final_proposal's online training")
+    ap.add_argument("--onednn", action="store_true",
+                    help="also train cdrl with oneDNN's convolutions (`--conv onednn`), in the same alternating "
+                         "repeats: the JSON's cdrl_onednn beside cdrl (XLA's formulation) and torch")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON to this file")
     args = ap.parse_args()
@@ -298,70 +306,124 @@ def _chunk_arrays(arch, T: int, B: int, seed: int):
     return frames[:-1], frames[1:], is_first
 
 
-def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
-    import jax.numpy as jnp
+def _torch_serve(conn, arch, name: str, params, arrays, threads: int) -> None:
+    """The torch side of `bench_offline` in a process of its own: it builds the reference model
+    from `params` and trains it on the chunk `arrays` when asked, `("run", n)` -> (seconds a step,
+    peak RSS MiB, growth MiB) of n steps; `("stop", 0)` ends it."""
     import numpy as np
     import torch
 
     from reference import torch_model as tr
+
+    torch.set_num_threads(threads)
+    model = tr.load_cdrl_params(tr.TorchModel(arch, name), params)
+    opt = tr.make_optimizer(model, lr=0.1, momentum=0.9)
+    obs, next_obs, is_first = (torch.from_numpy(np.array(x)) for x in arrays)
+    carry = model.init_carry(obs.shape[1])
+    while True:
+        cmd, n = conn.recv()
+        if cmd == "stop":
+            return
+        with PeakRSS() as m:
+            t0 = time.perf_counter()
+            for _ in range(n):
+                loss, carry, _ = tr.train_step(model, opt, carry, obs, next_obs, is_first, monitor=True)
+                loss.item()
+            step_s = (time.perf_counter() - t0) / n
+        conn.send((step_s, m.peak_mib, m.growth_mib))
+
+
+class TorchWorker:
+    """PyTorch's reference training in a child process, driven step by step from this one. Apart,
+    its OpenMP threads share nothing with oneDNN's (PyTorch and the extension load the same
+    libgomp: OpenMP teams started from XLA's threads would make libgomp throttle PyTorch's
+    spin-waits, 58 -> 37 frames/s for closed loop - at B 1), and its memory is its own."""
+
+    def __init__(self, arch, name: str, params, arrays, threads: int):
+        import multiprocessing
+
+        import jax
+        import numpy as np
+
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        params = jax.tree.map(np.asarray, params)
+        self.proc = ctx.Process(target=_torch_serve, args=(child, arch, name, params, arrays, threads), daemon=True)
+        self.proc.start()
+
+    def run(self, n: int):
+        """n train steps: (seconds a step, their memory as a `PeakRSS`-like record)."""
+        self.conn.send(("run", n))
+        step_s, peak, growth = self.conn.recv()
+        return step_s, types.SimpleNamespace(peak_mib=peak, growth_mib=growth)
+
+    def close(self) -> None:
+        self.conn.send(("stop", 0))
+        self.proc.join(timeout=60)
+
+
+def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
+    import jax.numpy as jnp
+
     from cdrl.data.stream import Chunk
     from cdrl.models import make_variant
     from cdrl.training.optim import HParams
+    from cdrl.models import conv
     from cdrl.training.step import train_step
 
     v = make_variant(name, arch)
     hp = HParams.create(v, lr=0.1, momentum=0.9)
-    state = _fresh_state(v, params, B, hp)
     obs, next_obs, is_first = _chunk_arrays(arch, T, B, args.seed)
     chunk = Chunk(obs=jnp.asarray(obs), next_obs=jnp.asarray(next_obs),
                         action=jnp.zeros((T, B, arch.action_dim), jnp.float32),
                         reward=jnp.zeros((T, B), jnp.float32), is_first=jnp.asarray(is_first))
 
-    model = tr.load_cdrl_params(tr.TorchModel(arch, name), params)
-    opt = tr.make_optimizer(model, lr=0.1, momentum=0.9)
-    t_obs, t_next, t_first = (torch.from_numpy(np.array(x)) for x in (obs, next_obs, is_first))
-    t_carry = model.init_carry(B)
+    # torch in a process of its own (`TorchWorker`): the same weights and chunk.
+    torch_worker = TorchWorker(arch, name, params, (obs, next_obs, is_first), args.torch_threads or os.cpu_count())
 
-    # cdrl: the first call compiles.
-    with PeakRSS() as compile_mem:
-        t0 = time.perf_counter()
-        state, metrics = train_step(v, state, hp, chunk)
-        float(metrics["loss"])
-        compile_s = time.perf_counter() - t0
-    # The executable is cached: this lowers again but does not compile again.
-    compiled = train_step.lower(v, state, hp, chunk).compile()
-    cost = compiled.cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
-    memory = compiled.memory_analysis()
-    xla_temp_mib = memory.temp_size_in_bytes / MiB if memory is not None else None
+    # cdrl, each backend its own compiled step (what `cdrl train` runs: the state donated);
+    # compile time = lowering, compiling and the first step.
+    backends = {"cdrl": "auto", **({"cdrl_onednn": "onednn"} if args.onednn else {})}
+    steps, states, compiled_info = {}, {}, {}
+    for fw, backend in backends.items():
+        variant = make_variant(name, dataclasses.replace(arch, conv=backend))
+        state = _fresh_state(variant, params, B, hp)
+        with PeakRSS() as compile_mem:
+            t0 = time.perf_counter()
+            compiled = train_step.lower(variant, state, hp, chunk).compile()
+            state, metrics = compiled(state, hp, chunk)
+            float(metrics["loss"])
+            compile_s = time.perf_counter() - t0
+        steps[fw], states[fw] = compiled, state
+        cost = compiled.cost_analysis()
+        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+        memory = compiled.memory_analysis()
+        compiled_info[fw] = {"compile_s": compile_s, "compile_peak_rss_mib": compile_mem.peak_mib,
+                             "compile_peak_growth_mib": compile_mem.growth_mib,
+                             "xla_temp_mib": memory.temp_size_in_bytes / MiB if memory is not None else None,
+                             "conv": conv.formulation(backend),
+                             "xla_flops": float(cost.get("flops", float("nan"))) if cost else float("nan")}
+    xla_flops = compiled_info["cdrl"]["xla_flops"]
 
-    def torch_step(carry):
-        loss, carry, _ = tr.train_step(model, opt, carry, t_obs, t_next, t_first, monitor=True)
-        loss.item()
-        return carry
+    torch_worker.run(args.torch_warmup)
 
-    for _ in range(args.torch_warmup):
-        t_carry = torch_step(t_carry)
-
-    times = {"cdrl": [], "torch": []}
-    mem = {"cdrl": [], "torch": []}
-    losses = {}
+    frameworks = [*backends, "torch"]
+    times = {fw: [] for fw in frameworks}
+    mem = {fw: [] for fw in frameworks}
     n = args.steps_per_repeat
     for _ in range(args.repeats):
-        with PeakRSS() as m:
-            t0 = time.perf_counter()
-            for _ in range(n):
-                state, metrics = train_step(v, state, hp, chunk)
-                losses["cdrl"] = float(metrics["loss"])
-            times["cdrl"].append((time.perf_counter() - t0) / n)
-        mem["cdrl"].append(m)
-        with PeakRSS() as m:
-            t0 = time.perf_counter()
-            for _ in range(n):
-                t_carry = torch_step(t_carry)
-            times["torch"].append((time.perf_counter() - t0) / n)
+        for fw in backends:
+            with PeakRSS() as m:
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    states[fw], metrics = steps[fw](states[fw], hp, chunk)
+                    float(metrics["loss"])
+                times[fw].append((time.perf_counter() - t0) / n)
+            mem[fw].append(m)
+        step_s, m = torch_worker.run(n)
+        times["torch"].append(step_s)
         mem["torch"].append(m)
+    torch_worker.close()
     if bool(metrics["diverged"]):
         print(f"warning: cdrl step diverged ({name}, B={B}); the timing still holds", file=sys.stderr)
 
@@ -369,7 +431,7 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
     model_flops = 3.0 * forward_flops_per_frame(arch) * frames
     out = {"variant": name, "batch": B, "unroll": T, "frames_per_step": frames,
            "model_flops_per_step": model_flops, "xla_flops_per_step": xla_flops}
-    for fw in ("cdrl", "torch"):
+    for fw in frameworks:
         step_s = statistics.median(times[fw])
         peak, growth = _worst(mem[fw])
         out[fw] = {
@@ -380,31 +442,35 @@ def bench_offline(name: str, arch, params, T: int, B: int, args) -> dict:
             "peak_rss_mib": peak,
             "peak_growth_mib": growth,
         }
-    out["cdrl"]["compile_s"] = compile_s
-    out["cdrl"]["compile_peak_rss_mib"] = compile_mem.peak_mib
-    out["cdrl"]["compile_peak_growth_mib"] = compile_mem.growth_mib
-    out["cdrl"]["xla_temp_mib"] = xla_temp_mib
-    out["cdrl"]["compile_target_s"] = COMPILE_TARGET_S
-    out["cdrl"]["compile_target_met"] = bool(compile_s < COMPILE_TARGET_S) if args.preset == TARGET_PRESET else None
+    for fw, info in compiled_info.items():
+        out[fw].update({k: v for k, v in info.items() if k != "xla_flops"})
+        out[fw]["compile_target_s"] = COMPILE_TARGET_S
+        out[fw]["compile_target_met"] = bool(info["compile_s"] < COMPILE_TARGET_S) if args.preset == TARGET_PRESET else None
     out["ratio_cdrl_over_torch"] = out["cdrl"]["frames_per_s"] / out["torch"]["frames_per_s"]
     # Repeat i ran cdrl then torch back to back: cdrl frames/s / torch frames/s = torch time / cdrl time.
-    out.update(ratio_fields([tt / tc for tc, tt in zip(times["cdrl"], times["torch"])],
-                            target_for(args.preset, name, B)))
+    per_repeat = lambda fw, ref: [tr_ / tc for tc, tr_ in zip(times[fw], times[ref])]  # noqa: E731
+    out.update(ratio_fields(per_repeat("cdrl", "torch"), target_for(args.preset, name, B)))
+    if "cdrl_onednn" in backends:
+        out["onednn"] = {"over_torch": ratio_fields(per_repeat("cdrl_onednn", "torch"),
+                                                    target_for(args.preset, name, B, ONEDNN_TARGETS)),
+                         "over_xla": spread(per_repeat("cdrl_onednn", "cdrl"))}
     return out
 
 
 # --------------------------------------------------------------------------- online training
 
 
-def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
+def bench_online(arch_preset: str, B: int, T: int, args, backend: str = "auto") -> dict:
     import jax
 
     from cdrl.learners.api import train_program
+    from cdrl.models import conv
     from cdrl.runs.config import RunConfig
     from cdrl.runs.online import build_learner
 
     # The ascent on from the first update: the steady state (before it is on, a step takes one backward pass less).
-    cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed, warmup_steps=0)
+    cfg = RunConfig(variant="final_proposal", preset=arch_preset, batch=B, unroll=T, seed=args.seed, warmup_steps=0,
+                    conv=backend)
     learner = build_learner(cfg)
     state = learner.init(jax.random.PRNGKey(cfg.seed))  # set-up, not measured
 
@@ -430,7 +496,7 @@ def bench_online(arch_preset: str, B: int, T: int, args) -> dict:
     step_s = statistics.median(times)
     peak, growth = _worst(mem)
     fps = [frames / t for t in times]
-    return {"variant": "final_proposal", "num_envs": B, "unroll": T, "frames_per_step": frames,
+    return {"variant": "final_proposal", "conv": conv.formulation(backend), "num_envs": B, "unroll": T, "frames_per_step": frames,
             "frames_per_s": frames / step_s, "frames_per_s_repeats": fps,
             "frames_per_s_min": min(fps), "frames_per_s_max": max(fps),
             "step_s": step_s, "compile_s": compile_s, "compile_peak_rss_mib": compile_mem.peak_mib,
@@ -457,11 +523,13 @@ def print_table(res: dict) -> None:
     print(head)
     print("-" * len(head))
     for r in res["configs"]:
-        for fw in ("cdrl", "torch"):
+        for fw in ("cdrl", "cdrl_onednn", "torch"):
+            if fw not in r:
+                continue
             x = r[fw]
-            ratio = f"{r['ratio_cdrl_over_torch']:6.2f}" if fw == "cdrl" else f"{'':6s}"
+            ratio = f"{'':6s}" if fw == "torch" else f"{x['frames_per_s'] / r['torch']['frames_per_s']:6.2f}"
             compile_s = _fmt(x.get("compile_s"), ".1f")
-            print(f"{r['variant']:18s} {r['batch']:3d} {fw:5s} {x['frames_per_s']:9.1f} {ratio} "
+            print(f"{r['variant']:18s} {r['batch']:3d} {fw.replace('cdrl_onednn', 'dnnl'):5s} {x['frames_per_s']:9.1f} {ratio} "
                   f"{1e3 * x['step_s']:9.1f} {x['model_gflops_per_s']:8.2f} {100 * x['mfu']:5.1f}% "
                   f"{compile_s:>9s} {_fmt(x['peak_rss_mib']):>9s} {_fmt(x['peak_growth_mib']):>10s}")
     print("model FLOPs: analytic (convs, transposed convs, LSTM, FC; x3 for training); "
@@ -481,14 +549,24 @@ def print_table(res: dict) -> None:
                 verdict += " (met by some repeats: within the noise)"
         print(f"  {r['variant']:18s} B {r['batch']:3d}: {r['ratio_median']:.3f} [{r['ratio_min']:.3f}, "
               f"{r['ratio_max']:.3f}] over {len(r['ratio_repeats'])} repeats; {verdict}")
+        if "onednn" in r:
+            o, x = r["onednn"]["over_torch"], r["onednn"]["over_xla"]
+            target = "no target" if o["target"] is None else \
+                f"target {o['target']:g}: {'met' if o['target_met'] else 'missed'}"
+            print(f"  {'  on oneDNN':18s} B {r['batch']:3d}: {o['ratio_median']:.3f} [{o['ratio_min']:.3f}, "
+                  f"{o['ratio_max']:.3f}]; {target}; over XLA's formulation {x['median']:.3f} "
+                  f"[{x['min']:.3f}, {x['max']:.3f}]")
     for b in res.get("batching", []):
         g = b["peak_growth_mib"]
         print(f"  batching {b['variant']:18s} B {b['batches'][0]} -> {b['batches'][1]}: cdrl frames/s x{b['cdrl_fps_ratio']:.3f} "
               f"(torch x{b['torch_fps_ratio']:.3f}), target >= 1: {'met' if b['fps_target_met'] else 'missed'}; "
               f"memory growth cdrl {_fmt(g['cdrl'])} MiB, torch {_fmt(g['torch'])} MiB: "
-              f"{'met' if b['growth_target_met'] else 'missed'}")
+              f"{'met' if b['growth_target_met'] else 'missed'}"
+              + (f"; on oneDNN {_fmt(g['cdrl_onednn'])} MiB, {b['onednn_growth_over_torch']:.2f} of torch's (target "
+                 f"<= {ONEDNN_GROWTH_TARGET:g}): {'met' if b['onednn_growth_target_met'] else 'missed'}"
+                 if "onednn_growth_over_torch" in b else ""))
     for r in res.get("online", []):
-        print(f"online final_proposal (cdrl only, games included) num_envs {r['num_envs']:3d}: "
+        print(f"online final_proposal (cdrl only, games included, conv {r['conv']}) num_envs {r['num_envs']:3d}: "
               f"{r['frames_per_s']:9.1f} frames/s [{r['frames_per_s_min']:.1f}, {r['frames_per_s_max']:.1f}], "
               f"step {1e3 * r['step_s']:.1f} ms, compile {r['compile_s']:.1f} s, peak {_fmt(r['peak_rss_mib'])} MiB")
     print(f"load average: {res['load_avg_start']:.2f} at the start, {res['load_avg_end']:.2f} at the end")
@@ -539,19 +617,22 @@ def main() -> None:
             params_by_shape[shape_key] = _initial_params(v, args.seed)
         for B in args.batches:
             r = bench_offline(name, arch, params_by_shape[shape_key], T, B, args)
-            for fw in ("cdrl", "torch"):
-                r[fw]["mfu"] = r[fw]["model_gflops_per_s"] / res["matmul_peak_gflops"]
+            for fw in ("cdrl", "cdrl_onednn", "torch"):
+                if fw in r:
+                    r[fw]["mfu"] = r[fw]["model_gflops_per_s"] / res["matmul_peak_gflops"]
             res["configs"].append(r)
-            print(f"  {name} B={B}: cdrl {r['cdrl']['frames_per_s']:.1f} frames/s, torch "
+            dnnl = f", cdrl on oneDNN {r['cdrl_onednn']['frames_per_s']:.1f}" if "cdrl_onednn" in r else ""
+            print(f"  {name} B={B}: cdrl {r['cdrl']['frames_per_s']:.1f}{dnnl} frames/s, torch "
                   f"{r['torch']['frames_per_s']:.1f} frames/s, cdrl compile {r['cdrl']['compile_s']:.1f} s",
                   file=sys.stderr, flush=True)
     res["online"] = []
     if not args.skip_online:
         for B in args.online_batches:
-            r = bench_online(args.preset, B, T, args)
-            res["online"].append(r)
-            print(f"  online final_proposal num_envs={B}: {r['frames_per_s']:.1f} frames/s, "
-                  f"compile {r['compile_s']:.1f} s", file=sys.stderr, flush=True)
+            for backend in ("auto", "onednn") if args.onednn else ("auto",):
+                r = bench_online(args.preset, B, T, args, backend)
+                res["online"].append(r)
+                print(f"  online final_proposal num_envs={B}, conv {r['conv']}: {r['frames_per_s']:.1f} frames/s, "
+                      f"compile {r['compile_s']:.1f} s", file=sys.stderr, flush=True)
     res["load_avg_end"] = os.getloadavg()[0]
     if res["load_avg_end"] > 0.5 * os.cpu_count() and "warning" not in res:
         res["warning"] = (f"machine busy at the end (load average {res['load_avg_end']:.1f} on {os.cpu_count()} CPUs): "
@@ -559,6 +640,9 @@ def main() -> None:
         print("warning: " + res["warning"], file=sys.stderr, flush=True)
     res["targets"] = {"preset": TARGET_PRESET, "cdrl_over_torch": {f"{v}/B{'any' if b is None else b}": t
                                                                    for (v, b), t in TARGETS.items()},
+                      "cdrl_onednn_over_torch": {f"{v}/B{'any' if b is None else b}": t
+                                                 for (v, b), t in ONEDNN_TARGETS.items()},
+                      "onednn_growth_over_torch_below": ONEDNN_GROWTH_TARGET,
                       "compile_s_below": COMPILE_TARGET_S, "verdict_from": "ratio_median"}
     res["batching"] = batching(res["configs"])
     print_table(res)
@@ -576,11 +660,15 @@ def batching(configs: list[dict]) -> list[dict]:
             continue
         lo, hi = rows[0], rows[-1]
         fps_ratio = hi["cdrl"]["frames_per_s"] / lo["cdrl"]["frames_per_s"]
-        growth = {fw: hi[fw]["peak_growth_mib"] for fw in ("cdrl", "torch")}
-        out.append({"variant": name, "batches": [lo["batch"], hi["batch"]], "cdrl_fps_ratio": fps_ratio,
-                    "torch_fps_ratio": hi["torch"]["frames_per_s"] / lo["torch"]["frames_per_s"],
-                    "fps_target_met": bool(fps_ratio >= 1.0), "peak_growth_mib": growth,
-                    "growth_target_met": None if None in growth.values() else bool(growth["cdrl"] <= growth["torch"])})
+        growth = {fw: hi[fw]["peak_growth_mib"] for fw in ("cdrl", "cdrl_onednn", "torch") if fw in hi}
+        row = {"variant": name, "batches": [lo["batch"], hi["batch"]], "cdrl_fps_ratio": fps_ratio,
+               "torch_fps_ratio": hi["torch"]["frames_per_s"] / lo["torch"]["frames_per_s"],
+               "fps_target_met": bool(fps_ratio >= 1.0), "peak_growth_mib": growth,
+               "growth_target_met": None if None in growth.values() else bool(growth["cdrl"] <= growth["torch"])}
+        if "cdrl_onednn" in growth and None not in growth.values():
+            row["onednn_growth_over_torch"] = growth["cdrl_onednn"] / growth["torch"]
+            row["onednn_growth_target_met"] = bool(row["onednn_growth_over_torch"] <= ONEDNN_GROWTH_TARGET)
+        out.append(row)
     return out
 
 

@@ -61,6 +61,9 @@ class ModelOptions:
     obs_std: float = _opt(1.0, "divisor of the encoder's input (set by obs_norm data)")
     action_dim: int = _opt(3, "values per action, the action encoder's input (set from the data when the run starts)")
     fc_init_gain: float = _recipe_opt("scale of the core's FC layer's LeCun-normal initial kernel (1: the thesis)")
+    conv: str = _opt("auto", "convolution backend: auto (the environment's CDRL_CONV_FORMULATION, else XLA's CPU "
+                             "formulation on the CPU and native elsewhere), cpu, native, or onednn (oneDNN's "
+                             "convolutions as XLA custom calls, where the extension is built; else cpu, warned)")
 
 
 @dataclasses.dataclass(frozen=True)

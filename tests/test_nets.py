@@ -180,7 +180,7 @@ def test_the_convolutions_are_chosen_by_backend(monkeypatch, backend, expected):
     assert ("lhs_dilation=(2, 2)" in transposed) == (expected == "native")
     _assert_same_function(lambda a, b: nets.conv2d(a, b, 2, 1), lambda a, b: _xla_conv(a, b, 2, 1), x, k, 7)
     monkeypatch.setattr(conv, "FORMULATION", "fast")
-    with pytest.raises(ValueError, match="CDRL_CONV_FORMULATION must be one of auto, cpu, native"):
+    with pytest.raises(ValueError, match="conv formulation must be one of auto, cpu, native, onednn"):
         conv.formulation()
 
 

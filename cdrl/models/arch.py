@@ -40,6 +40,10 @@ class ArchConfig:
     `fc_init_gain`, the scale of the LeCun-normal initial kernel of the FC layer that reads
     the LSTM's output (1: the thesis's initialisation).
 
+    `conv` is not part of the model but how its convolutions are computed
+    (`cdrl.models.conv.FORMULATIONS`): a static field, so a program compiled with one backend
+    is never reused for another. Parameters, and so checkpoints, do not depend on it.
+
     `max_filter` is part of the pre-processing: where the game's 150 x 150 frame is shrunk to
     `image_size`, each of its pixels first becomes the brightest of the `max_filter` x
     `max_filter` window around it (`cdrl.data.frames.resize_obs`; 1: none, the plain area
@@ -65,6 +69,7 @@ class ArchConfig:
     obs_std: float = 1.0
     fc_init_gain: float = 1.0
     max_filter: int = 1
+    conv: str = "auto"
 
     def __post_init__(self):
         if self.image_size < 1:

@@ -27,6 +27,12 @@ configuration axis folds into the frames; with the kernels batched too, one conv
 configuration, unrolled for a few and by `lax.map` for many. The passes are only ever
 differentiated through their `custom_vjp`, so the leaves need no derivative of their own.
 
+The `onednn` backend (`--conv onednn`, `ArchConfig.conv`) runs the three passes as XLA custom
+calls into oneDNN, the library PyTorch's CPU convolutions run on (`cdrl.models.onednn_conv`):
+the strided forward, the input gradient (which is also the transposed forward) and the kernel
+gradient. The thesis's layers then train 1.2-1.3 times as fast as in the formulation above
+(`benchmarks/train_throughput.py --onednn`). Without the extension it falls back to "cpu".
+
 `jax.custom_vjp` wires them: the gradient of `conv2d` with respect to its input is the
 transposed convolution of the output gradient, and the gradient of `conv_transpose` with
 respect to its input is the strided convolution of the output gradient (XLA's own rules
@@ -43,10 +49,13 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
+from cdrl.models import onednn_conv
+
 _DIMS = ("NHWC", "HWIO", "NHWC")
-FORMULATIONS = ("auto", "cpu", "native")
-# Which formulation to trace: "auto" (the default) picks by the default backend; "cpu" or
-# "native" forces one (the environment variable CDRL_CONV_FORMULATION sets it at import).
+FORMULATIONS = ("auto", "cpu", "native", "onednn")
+# The formulation "auto" traces: "auto" (the default) picks by the default backend; "cpu",
+# "native" or "onednn" forces one (the environment variable CDRL_CONV_FORMULATION sets it at
+# import). A run's `--conv` (`ArchConfig.conv`) names one for its own layers.
 FORMULATION = os.environ.get("CDRL_CONV_FORMULATION", "auto")
 # Frames per tile of the kernel-gradient convolution, and the most tiles one gradient is
 # split into (beyond, tiles grow: the tiles are unrolled in the program, so their number
@@ -243,15 +252,97 @@ def _transposed_bwd(stride, padding, res, ct):
 _transposed.defvjp(_transposed_fwd, _transposed_bwd)
 
 
-def formulation() -> str:
-    """The formulation traced now: "cpu" (this module's, chosen by timing XLA's CPU backend)
-    where JAX's default backend is the CPU, "native" (XLA's convolutions as they are) on any
-    other, unless `FORMULATION` forces one. Chosen when a function is traced, so a program
-    compiled for one backend keeps its formulation."""
-    if FORMULATION not in FORMULATIONS:
-        raise ValueError(f"CDRL_CONV_FORMULATION must be one of {', '.join(FORMULATIONS)}, got {FORMULATION!r}")
-    if FORMULATION != "auto":
-        return FORMULATION
+# --------------------------------------------------------------------------- oneDNN's passes
+# A transposed convolution is the input gradient of the strided one with the kernel's channel
+# axes swapped, so the three custom calls of `onednn_conv` serve both layers and their
+# gradients. Each is a leaf with the batching rule above. One pass stays on XLA: an input
+# gradient onto a single channel (the thesis decoder's last layer forward, 16 -> 1: 4.6 ms with
+# the sub-pixel form against 6.2 ms on oneDNN over 32 frames, 37 against 51 ms over 256).
+
+
+@_leaf
+def _onednn_forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+    return onednn_conv.forward(x, kernel, stride, padding)
+
+
+@_leaf
+def _onednn_input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: int, w: int) -> jax.Array:
+    return onednn_conv.input_grad(dy, kernel, stride, padding, (h, w))
+
+
+@_leaf(foldable=False)
+def _onednn_kernel_grad(x: jax.Array, dy: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
+    return onednn_conv.kernel_grad(x, dy, k, stride, padding)
+
+
+def _input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: int, w: int) -> jax.Array:
+    """d<conv2d(x, kernel), dy>/dx for x of spatial size h x w: on oneDNN, or onto a single
+    channel by XLA's sub-pixel form (where the stride divides the kernel)."""
+    if kernel.shape[2] > 1 or kernel.shape[0] % stride:
+        return _onednn_input_grad(dy, kernel, stride, padding, h, w)
+    dx = _subpixel_full(dy, _flip_io(kernel), stride)[:, padding: padding + h, padding: padding + w]
+    return jnp.pad(dx, ((0, 0), (0, h - dx.shape[1]), (0, w - dx.shape[2]), (0, 0)))
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _strided_onednn(x, kernel, stride, padding):
+    return _onednn_forward(x, kernel, stride, padding)
+
+
+def _strided_onednn_fwd(x, kernel, stride, padding):
+    return _onednn_forward(x, kernel, stride, padding), (x, kernel)
+
+
+def _strided_onednn_bwd(stride, padding, res, ct):
+    x, kernel = res
+    dx = _input_grad(ct, kernel, stride, padding, x.shape[1], x.shape[2])
+    return dx, _onednn_kernel_grad(x, ct, kernel.shape[0], stride, padding)
+
+
+_strided_onednn.defvjp(_strided_onednn_fwd, _strided_onednn_bwd)
+
+
+def _transposed_onednn_out(x, kernel, stride, padding):
+    k = kernel.shape[0]
+    h, w = ((size - 1) * stride - 2 * padding + k for size in x.shape[1:3])
+    return _input_grad(x, _flip_io(kernel), stride, padding, h, w)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _transposed_onednn(x, kernel, stride, padding):
+    return _transposed_onednn_out(x, kernel, stride, padding)
+
+
+def _transposed_onednn_fwd(x, kernel, stride, padding):
+    return _transposed_onednn_out(x, kernel, stride, padding), (x, kernel)
+
+
+def _transposed_onednn_bwd(stride, padding, res, ct):
+    x, kernel = res
+    dx = _onednn_forward(ct, _flip_io(kernel), stride, padding)
+    return dx, _flip_io(_onednn_kernel_grad(ct, x, kernel.shape[0], stride, padding))
+
+
+_transposed_onednn.defvjp(_transposed_onednn_fwd, _transposed_onednn_bwd)
+
+
+def formulation(name: str = "auto") -> str:
+    """The formulation `name` traces: "auto" is `FORMULATION` (the environment variable
+    CDRL_CONV_FORMULATION), and where that is "auto" too, "cpu" (this module's, chosen by timing
+    XLA's CPU backend) when JAX's default backend is the CPU and "native" (XLA's convolutions as
+    they are) on any other. "onednn" where `onednn_conv.available()`, else "cpu" with one
+    warning. Chosen when a function is traced; a run passes its `--conv` as
+    `ArchConfig.conv`, a static field, so programs of different backends are kept apart."""
+    for given in (name, FORMULATION):
+        if given not in FORMULATIONS:
+            raise ValueError(f"conv formulation must be one of {', '.join(FORMULATIONS)}, got {given!r} "
+                             "(--conv, or the environment variable CDRL_CONV_FORMULATION)")
+    name = FORMULATION if name == "auto" else name
+    if name == "onednn" and not onednn_conv.available():
+        onednn_conv.warn_unavailable()
+        return "cpu"
+    if name != "auto":
+        return name
     return "cpu" if jax.default_backend() == "cpu" else "native"
 
 
@@ -262,34 +353,41 @@ def _native_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int
                                         lhs_dilation=(stride, stride), dimension_numbers=_DIMS)
 
 
-def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int, backend: str = "auto") -> jax.Array:
     """Strided convolution: NHWC input, HWIO kernel, symmetric zero padding (see the module
-    docstring for the formulation of each pass)."""
-    if formulation() == "native":
+    docstring for the formulation of each pass, `formulation` for `backend`)."""
+    form = formulation(backend)
+    if form == "native":
         return _native(x, kernel, stride, padding)
     k, _, c_in, c_out = kernel.shape
     n, h, w, _ = x.shape
     if h + 2 * padding == k and w + 2 * padding == k:  # one window: a dense layer
         x = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
         return (x.reshape(n, k * k * c_in) @ kernel.reshape(k * k * c_in, c_out)).reshape(n, 1, 1, c_out)
+    if form == "onednn":
+        return _strided_onednn(x, kernel, stride, padding)
     if k % stride:
         return _native(x, kernel, stride, padding)
     return _strided(x, kernel, stride, padding)
 
 
-def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
+def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int,
+                   backend: str = "auto") -> jax.Array:
     """PyTorch `ConvTranspose2d` semantics on NHWC, kernel [kh, kw, in, out] (PyTorch's weight
     [in, out, kh, kw]): out = (in - 1) * stride - 2 * padding + k. Every input pixel scatters
     `x @ kernel` into a k x k window of the output at stride `stride`."""
     k, _, c_in, c_out = kernel.shape
     if k - 1 - padding < 0:
         raise ValueError(f"transposed convolution needs padding <= kernel - 1, got {padding} for {k}")
-    if formulation() == "native":
+    form = formulation(backend)
+    if form == "native":
         return _native_transpose(x, kernel, stride, padding)
     n, h, w, _ = x.shape
     if h == 1 and w == 1:  # one input pixel: a dense layer onto the k x k window
         y = x.reshape(n, c_in) @ kernel.transpose(2, 0, 1, 3).reshape(c_in, k * k * c_out)
         return y.reshape(n, k, k, c_out)[:, padding: k - padding, padding: k - padding]
+    if form == "onednn":
+        return _transposed_onednn(x, kernel, stride, padding)
     if k % stride:
         return _native_transpose(x, kernel, stride, padding)
     return _transposed(x, kernel, stride, padding)

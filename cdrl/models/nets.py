@@ -71,12 +71,14 @@ def init_obs_encoder(key, arch: ArchConfig) -> Params:
     return params
 
 
-def _conv_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int) -> jax.Array:
-    return jax.nn.selu(conv2d(x, kernel, stride, padding) + bias)
+def _conv_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
+               formulation: str = "auto") -> jax.Array:
+    return jax.nn.selu(conv2d(x, kernel, stride, padding, formulation) + bias)
 
 
-def _conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int) -> jax.Array:
-    return jax.nn.selu(conv_transpose(x, kernel, stride, padding) + bias)
+def _conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
+                         formulation: str = "auto") -> jax.Array:
+    return jax.nn.selu(conv_transpose(x, kernel, stride, padding, formulation) + bias)
 
 
 # The layers next to the image (the first encoder layer, the last hidden decoder layer) have
@@ -89,8 +91,8 @@ def _conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, strid
 # recomputation is all cost (the small preset's 32 x 32 x 8, 32 KiB a frame: online programs
 # 3-5 % slower), so only from RECOMPUTE_FROM_BYTES a frame.
 RECOMPUTE_FROM_BYTES = 128 * 1024
-_conv_selu_recomputed = jax.checkpoint(_conv_selu, static_argnums=(3, 4))
-_conv_transpose_selu_recomputed = jax.checkpoint(_conv_transpose_selu, static_argnums=(3, 4))
+_conv_selu_recomputed = jax.checkpoint(_conv_selu, static_argnums=(3, 4, 5))
+_conv_transpose_selu_recomputed = jax.checkpoint(_conv_transpose_selu, static_argnums=(3, 4, 5))
 
 
 def recomputes_image_layers(arch: ArchConfig) -> bool:
@@ -108,7 +110,7 @@ def obs_encoder(params: Params, arch: ArchConfig, frames: jax.Array) -> jax.Arra
     for i, spec in enumerate(arch.encoder):
         layer = params[f"conv{i}"]
         f = _conv_selu_recomputed if i == 0 and recompute else _conv_selu
-        x = f(x, layer["kernel"], layer["bias"], spec.stride, spec.padding)
+        x = f(x, layer["kernel"], layer["bias"], spec.stride, spec.padding, arch.conv)
     return x.reshape(x.shape[0], -1)
 
 
@@ -141,10 +143,10 @@ def obs_decoder_logits(params: Params, arch: ArchConfig, codes: jax.Array) -> ja
     for i, (spec, _, _) in enumerate(layers):
         layer = params[f"deconv{i}"]
         if i == last:
-            x = conv_transpose(x, layer["kernel"], spec.stride, spec.padding) + layer["bias"]
+            x = conv_transpose(x, layer["kernel"], spec.stride, spec.padding, arch.conv) + layer["bias"]
         else:
             f = _conv_transpose_selu_recomputed if i == last - 1 and recompute else _conv_transpose_selu
-            x = f(x, layer["kernel"], layer["bias"], spec.stride, spec.padding)
+            x = f(x, layer["kernel"], layer["bias"], spec.stride, spec.padding, arch.conv)
     return x[..., 0]
 
 

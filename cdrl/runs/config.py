@@ -18,6 +18,7 @@ from cdrl import learners
 from cdrl.learners.thesis_ascent import SCOPES
 from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
+from cdrl.models.conv import FORMULATIONS
 from cdrl.models.base import Variant
 from cdrl.options import DEFAULT_RECIPE, RECIPES  # noqa: F401 (re-exported: the CLI's help and tests read them here)
 from cdrl.options import (AGENT_RECIPE, FAMILY_OVERRIDES, OFFLINE_WORLD_MODEL, PRESET_ALIASES, RECIPE_ALIASES,
@@ -76,7 +77,7 @@ class _RunConfigMethods:
                              "(reward_prediction or final_proposal, offline or with a learner that keeps a replay "
                              "buffer)")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
-                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS)}
+                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "conv": FORMULATIONS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
@@ -134,7 +135,7 @@ class _RunConfigMethods:
     def arch(self) -> ArchConfig:
         return dataclasses.replace(preset(self.preset), obs_mean=self.obs_mean, obs_std=self.obs_std,
                                    fc_init_gain=self.fc_init_gain, action_dim=self.action_dim,
-                                   max_filter=self.max_filter)
+                                   max_filter=self.max_filter, conv=self.conv)
 
     def section(self, name: str):
         """The options of section `name` (`cdrl.options.SECTIONS`) as that section's dataclass."""

@@ -20,6 +20,9 @@ Rows (`--rows`, any subset, run one after another in this process):
                      pays, as `cdrl train` with its cache does
   small-fast-torch   the same recipe, weights and chunks in the eager PyTorch reference
                      (reference/torch_model.py), evaluated by cdrl's evaluation
+  small-fast-onednn  small-fast with oneDNN's convolutions (`--conv onednn`); run it after the
+                     torch row: PyTorch shares oneDNN's OpenMP runtime, whose teams started from
+                     XLA's threads slow PyTorch's for the rest of the process
   thesis-fast        thesis preset (150 x 150, LSTM 512), the `fast` recipe
 
     .venv/bin/python experiments/learning/time_to_quality.py --rows small-fast small-fast-torch --cap 600
@@ -60,6 +63,7 @@ ROWS = {
     "small-fast": dict(preset="small", recipe="fast", framework="cdrl"),
     "small-fast-warm": dict(preset="small", recipe="fast", framework="cdrl", compile_cache="warm"),
     "small-fast-torch": dict(preset="small", recipe="fast", framework="torch"),
+    "small-fast-onednn": dict(preset="small", recipe="fast", framework="cdrl", conv="onednn"),
     "thesis-fast": dict(preset="thesis", recipe="fast", framework="cdrl"),
 }
 TARGETS = (1.0, 0.5)
@@ -94,7 +98,7 @@ def _parse(argv):
 def _config(row: dict, args) -> RunConfig:
     cfg = RunConfig(variant="main", preset=row["preset"], recipe=row["recipe"], level=args.level,
                     episodes=args.episodes, episode_steps=args.episode_steps, seed=args.seed,
-                    steps=1_000_000)
+                    steps=1_000_000, conv=row.get("conv", "auto"))
     return with_obs_norm(cfg, Path(args.cache))
 
 
@@ -242,6 +246,9 @@ def main(argv=None) -> int:
         if name not in ROWS:
             raise SystemExit(f"--caps: unknown row {name!r}; rows are {list(ROWS)}")
         caps[name] = float(value)
+    if "small-fast-onednn" in args.rows and "small-fast-torch" in args.rows[args.rows.index("small-fast-onednn"):]:
+        raise SystemExit("--rows: run small-fast-torch before small-fast-onednn (oneDNN's OpenMP teams slow PyTorch's "
+                         "for the rest of the process)")
     if args.quick:
         caps = {name: 5.0 for name in args.rows}
         args.episodes, args.episode_steps, args.eval_every = 8, 40, 2
@@ -265,7 +272,8 @@ def main(argv=None) -> int:
     warn_if_busy(result, result["load_avg_start"], result["load_avg_end"])
     rows = {r["row"]: r for r in result["rows"]}
     for mine, key in (("small-fast", "cdrl_over_torch_seconds_to_1"),
-                      ("small-fast-warm", "cdrl_warm_over_torch_seconds_to_1")):
+                      ("small-fast-warm", "cdrl_warm_over_torch_seconds_to_1"),
+                      ("small-fast-onednn", "cdrl_onednn_over_torch_seconds_to_1")):
         if mine in rows and "small-fast-torch" in rows:
             a, b = rows[mine].get("to_1"), rows["small-fast-torch"].get("to_1")
             if a.get("reached", True) and b.get("reached", True):

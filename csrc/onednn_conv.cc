@@ -1,0 +1,192 @@
+// The three passes of a strided 2-D convolution on oneDNN, as XLA FFI handlers.
+//
+// Layouts are JAX's: frames NHWC, kernels HWIO (oneDNN's dims O, I, KH, KW with format tag
+// hwio). oneDNN picks its own kernel layout ("any"); the kernel is reordered into it, or the
+// kernel gradient out of it, inside the call. Every pass takes the stride and the leading
+// padding as attributes; the trailing padding follows from the shapes, so one convolution
+// serves a strided convolution (its output size rounded down) and, as its input gradient, a
+// PyTorch-style transposed convolution.
+//
+// Primitives are cached per thread by pass and shape: building one costs tens of microseconds,
+// running a small one about as much.
+
+#include <cstdint>
+#include <map>
+#include <string>
+#include <vector>
+
+#include <omp.h>
+
+#include "oneapi/dnnl/dnnl.hpp"
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+using dnnl::memory;
+
+namespace {
+
+int g_threads = 0;  // OpenMP threads of a large pass; 0: OpenMP's default
+// A pass of fewer multiply-adds runs on one thread: waking an OpenMP team costs more than it
+// saves there, and its threads compete with XLA's for the cores.
+double g_parallel_macs = 1e7;
+
+enum Pass : int64_t { kForward = 0, kInputGrad = 1, kKernelGrad = 2 };
+
+dnnl::engine& Engine() {
+  static dnnl::engine engine(dnnl::engine::kind::cpu, 0);
+  return engine;
+}
+
+dnnl::stream& Stream() {
+  thread_local dnnl::stream stream(Engine());
+  return stream;
+}
+
+// One convolution's shapes: frames x [n, h, w, c], kernel [k, k, c, o], y [n, ho, wo, o].
+struct Shapes {
+  int64_t n, h, w, c, k, o, ho, wo, stride, pad;
+
+  std::vector<int64_t> Key(int64_t pass) const { return {pass, n, h, w, c, k, o, ho, wo, stride, pad}; }
+  memory::desc X() const { return {{n, c, h, w}, memory::data_type::f32, memory::format_tag::nhwc}; }
+  memory::desc Y() const { return {{n, o, ho, wo}, memory::data_type::f32, memory::format_tag::nhwc}; }
+  memory::desc Kernel(memory::format_tag tag) const { return {{o, c, k, k}, memory::data_type::f32, tag}; }
+  memory::dims Strides() const { return {stride, stride}; }
+  memory::dims PadL() const { return {pad, pad}; }
+  // The trailing padding that makes ho x wo windows end where the last one ends.
+  memory::dims PadR() const { return {(ho - 1) * stride + k - h - pad, (wo - 1) * stride + k - w - pad}; }
+  double Macs() const { return double(n) * ho * wo * o * c * k * k; }
+};
+
+struct Cached {
+  int threads = 1;           // the OpenMP threads the primitives were made for
+  dnnl::primitive conv;
+  memory::desc kernel_desc;  // oneDNN's layout of the kernel (or its gradient)
+  bool reorder = false;      // it differs from HWIO
+  dnnl::reorder to_onednn;    // HWIO -> oneDNN's (forward, input gradient) or back (kernel gradient)
+  memory kernel_buf;          // the kernel in oneDNN's layout, where it differs
+};
+
+dnnl::convolution_forward::primitive_desc ForwardDesc(const Shapes& s) {
+  return dnnl::convolution_forward::primitive_desc(
+      Engine(), dnnl::prop_kind::forward_training, dnnl::algorithm::convolution_direct, s.X(),
+      s.Kernel(memory::format_tag::any), s.Y(), s.Strides(), s.PadL(), s.PadR());
+}
+
+Cached Build(const Shapes& s, int64_t pass) {
+  Cached c;
+  // oneDNN splits the work for the thread count it sees when a primitive is made.
+  c.threads = s.Macs() >= g_parallel_macs && g_threads > 0 ? g_threads : 1;
+  omp_set_num_threads(c.threads);
+  auto hwio = s.Kernel(memory::format_tag::hwio);
+  auto fwd = ForwardDesc(s);
+  if (pass == kForward) {
+    c.conv = dnnl::convolution_forward(fwd);
+    c.kernel_desc = fwd.weights_desc();
+  } else if (pass == kInputGrad) {
+    dnnl::convolution_backward_data::primitive_desc pd(
+        Engine(), dnnl::algorithm::convolution_direct, s.X(), s.Kernel(memory::format_tag::any), s.Y(),
+        s.Strides(), s.PadL(), s.PadR(), fwd);
+    c.conv = dnnl::convolution_backward_data(pd);
+    c.kernel_desc = pd.weights_desc();
+  } else {
+    dnnl::convolution_backward_weights::primitive_desc pd(
+        Engine(), dnnl::algorithm::convolution_direct, s.X(), s.Kernel(memory::format_tag::any), s.Y(),
+        s.Strides(), s.PadL(), s.PadR(), fwd);
+    c.conv = dnnl::convolution_backward_weights(pd);
+    c.kernel_desc = pd.diff_weights_desc();
+  }
+  c.reorder = c.kernel_desc != hwio;
+  if (c.reorder) {
+    c.kernel_buf = memory(c.kernel_desc, Engine());
+    c.to_onednn = pass == kKernelGrad
+                      ? dnnl::reorder(dnnl::reorder::primitive_desc(Engine(), c.kernel_desc, Engine(), hwio))
+                      : dnnl::reorder(dnnl::reorder::primitive_desc(Engine(), hwio, Engine(), c.kernel_desc));
+  }
+  return c;
+}
+
+Cached& Lookup(const Shapes& s, int64_t pass) {
+  thread_local std::map<std::vector<int64_t>, Cached> cache;
+  auto key = s.Key(pass);
+  auto it = cache.find(key);
+  if (it == cache.end()) it = cache.emplace(key, Build(s, pass)).first;
+  return it->second;
+}
+
+// Runs one pass. `x` and `y` are the frames and the windows' outputs (each the input or the
+// result, by pass); `kernel` is the kernel (forward, input gradient) or its gradient.
+ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y) {
+  // OpenMP's thread count is a setting of the calling thread, which may be the caller's own
+  // (another library on the same OpenMP runtime, as PyTorch's is): set for the pass, then put back.
+  const int before = omp_get_max_threads();
+  try {
+    Cached& c = Lookup(s, pass);
+    if (before != c.threads) omp_set_num_threads(c.threads);
+    auto& stream = Stream();
+    memory xm(s.X(), Engine(), x), ym(s.Y(), Engine(), y);
+    memory user(s.Kernel(memory::format_tag::hwio), Engine(), kernel);
+    memory km = c.reorder ? c.kernel_buf : user;
+    if (c.reorder && pass != kKernelGrad) {
+      c.to_onednn.execute(stream, user, km);
+    }
+    if (pass == kForward) {
+      c.conv.execute(stream, {{DNNL_ARG_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_DST, ym}});
+    } else if (pass == kInputGrad) {
+      c.conv.execute(stream, {{DNNL_ARG_DIFF_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_DIFF_DST, ym}});
+    } else {
+      c.conv.execute(stream, {{DNNL_ARG_SRC, xm}, {DNNL_ARG_DIFF_WEIGHTS, km}, {DNNL_ARG_DIFF_DST, ym}});
+      if (c.reorder) c.to_onednn.execute(stream, km, user);
+    }
+    stream.wait();
+  } catch (const dnnl::error& e) {
+    omp_set_num_threads(before);
+    return ffi::Error::Internal(std::string("oneDNN convolution failed: ") + e.what());
+  }
+  if (omp_get_max_threads() != before) omp_set_num_threads(before);
+  return ffi::Error::Success();
+}
+
+bool Rank4(ffi::AnyBuffer::Dimensions d) { return d.size() == 4; }
+
+ffi::Error Forward(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> y,
+                   int64_t stride, int64_t pad) {
+  auto xd = x.dimensions(), kd = kernel.dimensions(), yd = y->dimensions();
+  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
+  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
+  return Run(s, kForward, x.typed_data(), kernel.typed_data(), y->typed_data());
+}
+
+// The input gradient: dy [n, ho, wo, o] and the kernel give dx [n, h, w, c].
+ffi::Error InputGrad(ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> dx,
+                     int64_t stride, int64_t pad) {
+  auto yd = dy.dimensions(), kd = kernel.dimensions(), xd = dx->dimensions();
+  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
+  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
+  return Run(s, kInputGrad, dx->typed_data(), kernel.typed_data(), dy.typed_data());
+}
+
+// The kernel gradient: x [n, h, w, c] and dy [n, ho, wo, o] give dk [k, k, c, o].
+ffi::Error KernelGrad(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::ResultBuffer<ffi::F32> dk,
+                      int64_t stride, int64_t pad) {
+  auto xd = x.dimensions(), yd = dy.dimensions(), kd = dk->dimensions();
+  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
+  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
+  return Run(s, kKernelGrad, x.typed_data(), dk->typed_data(), dy.typed_data());
+}
+
+}  // namespace
+
+#define CDRL_CONV_BINDING()                                                                   \
+  ffi::Ffi::Bind().Arg<ffi::Buffer<ffi::F32>>().Arg<ffi::Buffer<ffi::F32>>().Ret<ffi::Buffer<ffi::F32>>() \
+      .Attr<int64_t>("stride").Attr<int64_t>("padding")
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForward, Forward, CDRL_CONV_BINDING());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvInputGrad, InputGrad, CDRL_CONV_BINDING());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvKernelGrad, KernelGrad, CDRL_CONV_BINDING());
+
+// The OpenMP threads of a large pass (XLA's intra-op thread count), and the multiply-adds from
+// which a pass is large; for the primitives made from now on.
+extern "C" void CdrlOnednnSetThreads(int n, double parallel_macs) {
+  g_threads = n;
+  g_parallel_macs = parallel_macs;
+}

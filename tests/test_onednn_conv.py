@@ -1,0 +1,184 @@
+"""oneDNN's convolutions (`--conv onednn`, `cdrl.models.onednn_conv`) against XLA's: values and
+both gradients of every pass, at the thesis's layer shapes, under `jit`, `vmap`, `grad` and
+`lax.scan`; a train step of the tiny model; and the fallback where the extension is missing
+(`CDRL_ONEDNN=0` turns it off).
+The tests that need the extension are skipped where it is not built (CI runs the suite without
+it too)."""
+import functools
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdrl.models import conv, onednn_conv
+from cdrl.models.arch import preset
+
+needs_onednn = pytest.mark.skipif(not onednn_conv.available(), reason=str(onednn_conv.unavailable_reason()))
+
+
+def _xla(kind, stride, padding):
+    """XLA's own convolutions and their own gradients: the independent path."""
+    dims = ("NHWC", "HWIO", "NHWC")
+    if kind == "conv":
+        return lambda x, k: jax.lax.conv_general_dilated(x, k, (stride, stride), [(padding, padding)] * 2,
+                                                         dimension_numbers=dims)
+    pad = lambda k: k.shape[0] - 1 - padding  # noqa: E731
+    return lambda x, k: jax.lax.conv_general_dilated(x, k[::-1, ::-1], (1, 1), [(pad(k), pad(k))] * 2,
+                                                     lhs_dilation=(stride, stride), dimension_numbers=dims)
+
+
+def _onednn(kind, stride, padding):
+    fn = conv.conv2d if kind == "conv" else conv.conv_transpose
+    return lambda x, k: fn(x, k, stride, padding, "onednn")
+
+
+def _value_and_grads(f, x, k, ct):
+    y, vjp = jax.vjp(f, x, k)
+    return (y, *vjp(ct))
+
+
+def _assert_close(got, want, what):
+    for name, g, w in zip(("value", "input gradient", "kernel gradient"), got, want):
+        assert g.shape == w.shape, (what, name)
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()), err_msg=f"{what}: {name}")
+
+
+def _thesis_layers():
+    """(kind, c_in, c_out, size, kernel, stride, padding) of every strided layer of the thesis's
+    encoder and decoder that oneDNN runs (the dense ends are matrix products either way)."""
+    arch = preset("thesis")
+    from cdrl.models.nets import _decoder_layers
+
+    layers, c_in = [], 1
+    for spec, size in zip(arch.encoder, arch.encoder_sizes):
+        if size + 2 * spec.padding > spec.kernel:
+            layers.append(("conv", c_in, spec.features, size, spec.kernel, spec.stride, spec.padding))
+        c_in = spec.features
+    for (spec, ci, co), size in zip(_decoder_layers(arch), arch.decoder_sizes):
+        if size > 1:
+            layers.append(("transpose", ci, co, size, spec.kernel, spec.stride, spec.padding))
+    return layers
+
+
+@needs_onednn
+@pytest.mark.parametrize("layer", _thesis_layers(), ids=lambda l: f"{l[0]}{l[1]}-{l[2]}@{l[3]}")
+def test_every_thesis_layer_equals_xla(layer):
+    kind, c_in, c_out, size, k, stride, padding = layer
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(2, size, size, c_in)), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(k, k, c_in, c_out)) / np.sqrt(k * k * c_in), jnp.float32)
+    y = _xla(kind, stride, padding)(x, kernel)
+    ct = jnp.asarray(rng.normal(size=y.shape), jnp.float32)
+    want = jax.jit(functools.partial(_value_and_grads, _xla(kind, stride, padding)))(x, kernel, ct)
+    got = jax.jit(functools.partial(_value_and_grads, _onednn(kind, stride, padding)))(x, kernel, ct)
+    _assert_close(got, want, str(layer))
+
+
+@needs_onednn
+# a stride that does not divide the kernel, one that does not divide h + 2p - k, a single
+# frame, a single channel in and out, the tiny preset's layers
+@pytest.mark.parametrize("kind,size,k,stride,padding,n,c_in,c_out",
+                         [("conv", 9, 3, 2, 1, 2, 3, 5), ("conv", 7, 4, 2, 1, 1, 3, 5), ("conv", 15, 4, 2, 2, 2, 1, 4),
+                          ("transpose", 6, 3, 2, 0, 2, 3, 2), ("transpose", 8, 4, 2, 2, 1, 3, 1),
+                          ("transpose", 9, 8, 4, 2, 2, 2, 1)])
+def test_odd_shapes_equal_xla(kind, size, k, stride, padding, n, c_in, c_out):
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(rng.normal(size=(n, size, size, c_in)), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(k, k, c_in, c_out)), jnp.float32)
+    y = _xla(kind, stride, padding)(x, kernel)
+    ct = jnp.asarray(rng.normal(size=y.shape), jnp.float32)
+    _assert_close(_value_and_grads(_onednn(kind, stride, padding), x, kernel, ct),
+                  _value_and_grads(_xla(kind, stride, padding), x, kernel, ct), kind)
+
+
+@needs_onednn
+@pytest.mark.parametrize("kind", ["conv", "transpose"])
+@pytest.mark.parametrize("shared_kernel", [False, True])
+def test_vmap_and_scan_equal_the_pass_per_configuration(kind, shared_kernel):
+    """Under `vmap` over configurations (the batching rule of `conv._leaf`), and inside a
+    `lax.scan` over steps, values and gradients equal XLA's path one configuration at a time."""
+    rng = np.random.default_rng(2)
+    configs, steps, size = 3, 2, (12 if kind == "conv" else 6)
+    x = jnp.asarray(rng.normal(size=(configs, steps, 2, size, size, 4)), jnp.float32)
+    shape = (4, 4, 4, 5)
+    kernel = jnp.asarray(rng.normal(size=shape if shared_kernel else (configs,) + shape), jnp.float32)
+
+    def loss(layer, xs, k):
+        def body(total, x):
+            return total + jnp.sum(jnp.sin(layer(x, k))), None
+        return jax.lax.scan(body, 0.0, xs)[0]
+
+    grad = lambda layer: jax.value_and_grad(functools.partial(loss, layer), argnums=(0, 1))  # noqa: E731
+    k_axis = None if shared_kernel else 0
+    got_v, (got_dx, got_dk) = jax.jit(jax.vmap(grad(_onednn(kind, 2, 1)), (0, k_axis)))(x, kernel)
+    for i in range(configs):
+        want_v, (want_dx, want_dk) = grad(_xla(kind, 2, 1))(x[i], kernel if shared_kernel else kernel[i])
+        np.testing.assert_allclose(got_v[i], want_v, rtol=1e-4)
+        np.testing.assert_allclose(got_dx[i], want_dx, rtol=1e-4, atol=1e-4)
+        if not shared_kernel:
+            np.testing.assert_allclose(got_dk[i], want_dk, rtol=1e-4, atol=1e-3)
+    if shared_kernel:  # the kernel's gradient sums the configurations'
+        want = sum(grad(_xla(kind, 2, 1))(x[i], kernel)[1][1] for i in range(configs))
+        np.testing.assert_allclose(got_dk.sum(0) if got_dk.ndim == 5 else got_dk, want, rtol=1e-4, atol=1e-3)
+
+
+@needs_onednn
+def test_a_train_step_and_its_checkpoint_are_the_same_on_both_backends():
+    """The tiny model's train step from one state gives the same loss and parameters with
+    `ArchConfig.conv` "cpu" and "onednn" (only the second calls oneDNN): the parameters, so a
+    checkpoint, do not depend on the backend."""
+    import dataclasses
+
+    from cdrl.data.stream import Chunk
+    from cdrl.models import TINY, make_variant
+    from cdrl.training.step import HParams, init_state, train_step
+
+    rng = np.random.default_rng(3)
+    t, b, size = 4, 2, TINY.image_size
+    frames = rng.integers(0, 256, size=(t + 1, b, size, size), dtype=np.uint8)
+    chunk = Chunk(obs=jnp.asarray(frames[:-1]), next_obs=jnp.asarray(frames[1:]),
+                  action=jnp.zeros((t, b, 3), jnp.float32), reward=jnp.zeros((t, b), jnp.float32),
+                  is_first=jnp.zeros((t, b), bool).at[0].set(True))
+    results = {}
+    for name in ("cpu", "onednn"):
+        variant = make_variant("main", dataclasses.replace(TINY, conv=name))
+        state, hp = init_state(variant, jax.random.PRNGKey(0), b), HParams.create(variant)
+        program = train_step.lower(variant, state, hp, chunk).as_text()
+        assert ("cdrl_onednn_conv" in program) == (name == "onednn")
+        results[name] = train_step(variant, state, hp, chunk)
+    (cpu_state, cpu_out), (dnnl_state, dnnl_out) = results["cpu"], results["onednn"]
+    assert jax.tree.structure(cpu_state.params) == jax.tree.structure(dnnl_state.params)
+    np.testing.assert_allclose(dnnl_out["loss"], cpu_out["loss"], rtol=1e-5)
+    for got, want in zip(jax.tree.leaves(dnnl_state.params), jax.tree.leaves(cpu_state.params)):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_onednn_falls_back_to_xla_with_one_warning(monkeypatch):
+    """Where the extension is not there, `onednn` traces XLA's CPU formulation and warns once."""
+    monkeypatch.setattr(onednn_conv, "_extension_path", lambda: None)
+    monkeypatch.setattr(onednn_conv, "_load", onednn_conv._load.__wrapped__)  # uncached: sees the missing file
+    onednn_conv.warn_unavailable.cache_clear()
+    try:
+        assert not onednn_conv.available()
+        assert "not built" in onednn_conv.unavailable_reason()
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            assert conv.formulation("onednn") == conv.formulation("onednn") == "cpu"
+        messages = [str(w.message) for w in seen if "'onednn' is not available" in str(w.message)]
+        assert len(messages) == 1 and "not built" in messages[0]
+    finally:
+        onednn_conv.warn_unavailable.cache_clear()
+
+
+def test_a_run_records_its_convolution_backend():
+    """`--conv` is a model option: checked, in the run's config.json and in its architecture
+    (a static field: programs of the two backends are compiled apart)."""
+    from cdrl.runs.config import RunConfig
+
+    cfg = RunConfig(conv="onednn")
+    assert cfg.arch.conv == "onednn" and cfg.to_dict()["model"]["conv"] == "onednn"
+    assert hash(cfg.arch) != hash(RunConfig().arch)
+    with pytest.raises(ValueError, match="conv must be one of auto, cpu, native, onednn"):
+        RunConfig(conv="mkl")
