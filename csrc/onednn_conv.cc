@@ -30,7 +30,11 @@ int g_threads = 0;  // OpenMP threads of a large pass; 0: OpenMP's default
 // saves there, and its threads compete with XLA's for the cores.
 double g_parallel_macs = 1e7;
 
-enum Pass : int64_t { kForward = 0, kInputGrad = 1, kKernelGrad = 2 };
+// kForwardSelu: the forward with the bias added and SELU applied inside the convolution
+// (oneDNN post-ops: ELU with SELU's alpha, then a linear scale by SELU's lambda).
+enum Pass : int64_t { kForward = 0, kInputGrad = 1, kKernelGrad = 2, kForwardSelu = 3 };
+constexpr float kSeluAlpha = 1.6732632423543772f;
+constexpr float kSeluScale = 1.0507009873554805f;
 
 dnnl::engine& Engine() {
   static dnnl::engine engine(dnnl::engine::kind::cpu, 0);
@@ -50,6 +54,7 @@ struct Shapes {
   memory::desc X() const { return {{n, c, h, w}, memory::data_type::f32, memory::format_tag::nhwc}; }
   memory::desc Y() const { return {{n, o, ho, wo}, memory::data_type::f32, memory::format_tag::nhwc}; }
   memory::desc Kernel(memory::format_tag tag) const { return {{o, c, k, k}, memory::data_type::f32, tag}; }
+  memory::desc Bias() const { return {{o}, memory::data_type::f32, memory::format_tag::x}; }
   memory::dims Strides() const { return {stride, stride}; }
   memory::dims PadL() const { return {pad, pad}; }
   // The trailing padding that makes ho x wo windows end where the last one ends.
@@ -82,6 +87,17 @@ Cached Build(const Shapes& s, int64_t pass) {
   if (pass == kForward) {
     c.conv = dnnl::convolution_forward(fwd);
     c.kernel_desc = fwd.weights_desc();
+  } else if (pass == kForwardSelu) {
+    dnnl::post_ops ops;
+    ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
+    ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
+    dnnl::primitive_attr attr;
+    attr.set_post_ops(ops);
+    dnnl::convolution_forward::primitive_desc pd(
+        Engine(), dnnl::prop_kind::forward_training, dnnl::algorithm::convolution_direct, s.X(),
+        s.Kernel(memory::format_tag::any), s.Bias(), s.Y(), s.Strides(), s.PadL(), s.PadR(), attr);
+    c.conv = dnnl::convolution_forward(pd);
+    c.kernel_desc = pd.weights_desc();
   } else if (pass == kInputGrad) {
     dnnl::convolution_backward_data::primitive_desc pd(
         Engine(), dnnl::algorithm::convolution_direct, s.X(), s.Kernel(memory::format_tag::any), s.Y(),
@@ -115,7 +131,7 @@ Cached& Lookup(const Shapes& s, int64_t pass) {
 
 // Runs one pass. `x` and `y` are the frames and the windows' outputs (each the input or the
 // result, by pass); `kernel` is the kernel (forward, input gradient) or its gradient.
-ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y) {
+ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y, float* bias = nullptr) {
   // OpenMP's thread count is a setting of the calling thread, which may be the caller's own
   // (another library on the same OpenMP runtime, as PyTorch's is): set for the pass, then put back.
   const int before = omp_get_max_threads();
@@ -131,6 +147,9 @@ ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y)
     }
     if (pass == kForward) {
       c.conv.execute(stream, {{DNNL_ARG_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_DST, ym}});
+    } else if (pass == kForwardSelu) {
+      memory bm(s.Bias(), Engine(), bias);
+      c.conv.execute(stream, {{DNNL_ARG_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_BIAS, bm}, {DNNL_ARG_DST, ym}});
     } else if (pass == kInputGrad) {
       c.conv.execute(stream, {{DNNL_ARG_DIFF_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_DIFF_DST, ym}});
     } else {
@@ -154,6 +173,16 @@ ffi::Error Forward(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::R
   if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
   Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
   return Run(s, kForward, x.typed_data(), kernel.typed_data(), y->typed_data());
+}
+
+// SELU(forward + bias): x [n, h, w, c], the kernel and the bias [o] give y [n, ho, wo, o].
+ffi::Error ForwardSelu(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::Buffer<ffi::F32> bias,
+                       ffi::ResultBuffer<ffi::F32> y, int64_t stride, int64_t pad) {
+  auto xd = x.dimensions(), kd = kernel.dimensions(), yd = y->dimensions(), bd = bias.dimensions();
+  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
+  if (bd.size() != 1 || bd[0] != kd[3]) return ffi::Error::InvalidArgument("conv: a bias per output channel expected");
+  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
+  return Run(s, kForwardSelu, x.typed_data(), kernel.typed_data(), y->typed_data(), bias.typed_data());
 }
 
 // The input gradient: dy [n, ho, wo, o] and the kernel give dx [n, h, w, c].
@@ -182,6 +211,14 @@ ffi::Error KernelGrad(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::Re
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForward, Forward, CDRL_CONV_BINDING());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvInputGrad, InputGrad, CDRL_CONV_BINDING());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForwardSelu, ForwardSelu,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::F32>>()
+                                  .Attr<int64_t>("stride")
+                                  .Attr<int64_t>("padding"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvKernelGrad, KernelGrad, CDRL_CONV_BINDING());
 
 // The OpenMP threads of a large pass (XLA's intra-op thread count), and the multiply-adds from

@@ -182,3 +182,37 @@ def test_a_run_records_its_convolution_backend():
     assert hash(cfg.arch) != hash(RunConfig().arch)
     with pytest.raises(ValueError, match="conv must be one of auto, cpu, native, onednn"):
         RunConfig(conv="mkl")
+
+
+@needs_onednn
+@pytest.mark.parametrize("kind,size", [("conv", 12), ("conv", 76), ("transpose", 6), ("transpose", 20)])
+@pytest.mark.parametrize("batched", ["none", "frames", "all"])
+def test_the_fused_selu_layer_equals_its_parts(kind, size, batched):
+    """SELU(convolution + bias) on oneDNN (the bias and SELU inside the convolution, SELU's
+    derivative read off the output) equals XLA's layer written out, in values and in the
+    gradients of the input, kernel and bias; also under `vmap` over frames alone or over
+    frames, kernels and biases."""
+    rng = np.random.default_rng(4)
+    c_in, c_out, k, stride, padding = 4, 6, 4, 2, 1
+    configs = 2
+    shape = (configs, 3, size, size, c_in) if batched != "none" else (3, size, size, c_in)
+    x = jnp.asarray(rng.normal(size=shape), jnp.float32)
+    k_shape = (configs, k, k, c_in, c_out) if batched == "all" else (k, k, c_in, c_out)
+    kernel = jnp.asarray(rng.normal(size=k_shape) / 8, jnp.float32)
+    bias = jnp.asarray(rng.normal(size=k_shape[:-4] + (c_out,)), jnp.float32)
+    fused = conv.conv2d_selu if kind == "conv" else conv.conv_transpose_selu
+
+    def loss(layer, x, kernel, bias):
+        return jnp.sum(jnp.sin(layer(x, kernel, bias)))
+
+    mine = lambda x, kr, b: fused(x, kr, b, stride, padding, "onednn")  # noqa: E731
+    theirs = lambda x, kr, b: jax.nn.selu(_xla(kind, stride, padding)(x, kr) + b)  # noqa: E731
+    grads = lambda layer: jax.value_and_grad(functools.partial(loss, layer), argnums=(0, 1, 2))  # noqa: E731
+    if batched == "none":
+        got, want = grads(mine)(x, kernel, bias), grads(theirs)(x, kernel, bias)
+    else:
+        axes = (0, 0, 0) if batched == "all" else (0, None, None)
+        got = jax.jit(jax.vmap(grads(mine), axes))(x, kernel, bias)
+        want = jax.vmap(grads(theirs), axes)(x, kernel, bias)
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()))

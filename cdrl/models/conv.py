@@ -70,14 +70,15 @@ def _leaf(fn=None, *, foldable: bool = True):
     """`fn(a, b, *static)` with a batching rule of its own (see the module docstring): a
     convolution pass whose first argument holds independent frames on its leading axis
     (`foldable`: the pass is frame by frame, so a batch of configurations folds into the
-    frames while `b` is shared) and whose second is a kernel, or for the kernel gradient the
-    other operand of a sum over the frames (not foldable)."""
+    frames while `b` is shared) and whose second is a kernel (or a tuple of arrays, as a
+    kernel and its bias), or for the kernel gradient the other operand of a sum over the
+    frames (not foldable)."""
     if fn is None:
         return partial(_leaf, foldable=foldable)
 
     def per_config(axis_size, a, b, static):
         if axis_size <= MAX_UNROLLED_CONFIGS:
-            return jnp.stack([call(a[i], b[i], *static) for i in range(axis_size)])
+            return jnp.stack([call(a[i], jax.tree.map(lambda leaf: leaf[i], b), *static) for i in range(axis_size)])
         return jax.lax.map(lambda ab: call(ab[0], ab[1], *static), (a, b))
 
     def call(a, b, *static):
@@ -88,11 +89,12 @@ def _leaf(fn=None, *, foldable: bool = True):
         @leaf.def_vmap
         def rule(axis_size, in_batched, a, b):
             a_batched, b_batched = in_batched
-            if foldable and a_batched and not b_batched:
+            if foldable and a_batched and not any(jax.tree.leaves(b_batched)):
                 y = call(a.reshape((-1,) + a.shape[2:]), b, *static)
                 return y.reshape((axis_size, a.shape[1]) + y.shape[1:]), True
             a = a if a_batched else jnp.broadcast_to(a, (axis_size,) + a.shape)
-            b = b if b_batched else jnp.broadcast_to(b, (axis_size,) + b.shape)
+            b = jax.tree.map(lambda leaf, batched: leaf if batched else jnp.broadcast_to(leaf, (axis_size,) + leaf.shape),
+                             b, b_batched)
             return per_config(axis_size, a, b, static), True
 
         return leaf(a, b)
@@ -326,6 +328,61 @@ def _transposed_onednn_bwd(stride, padding, res, ct):
 _transposed_onednn.defvjp(_transposed_onednn_fwd, _transposed_onednn_bwd)
 
 
+# SELU(z) = λ z for z > 0, λ α (e^z - 1) else; its derivative, λ or λ α e^z = y + λ α, is a
+# function of the output y: the backward passes need no pre-activation and no exponential.
+_SELU_ALPHA = 1.6732632423543772
+_SELU_SCALE = 1.0507009873554805
+
+
+def _selu_grad(y: jax.Array, ct: jax.Array) -> jax.Array:
+    return ct * jnp.where(y > 0, _SELU_SCALE, y + _SELU_SCALE * _SELU_ALPHA)
+
+
+@_leaf
+def _onednn_forward_selu(x: jax.Array, kernel_bias, stride: int, padding: int) -> jax.Array:
+    return onednn_conv.forward_selu(x, kernel_bias[0], kernel_bias[1], stride, padding)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(3, 4))
+def _strided_selu_onednn(x, kernel, bias, stride, padding):
+    return _onednn_forward_selu(x, (kernel, bias), stride, padding)
+
+
+def _strided_selu_onednn_fwd(x, kernel, bias, stride, padding):
+    y = _onednn_forward_selu(x, (kernel, bias), stride, padding)
+    return y, (x, kernel, y)
+
+
+def _strided_selu_onednn_bwd(stride, padding, res, ct):
+    x, kernel, y = res
+    dz = _selu_grad(y, ct)
+    dx = _input_grad(dz, kernel, stride, padding, x.shape[1], x.shape[2])
+    return dx, _onednn_kernel_grad(x, dz, kernel.shape[0], stride, padding), dz.sum((0, 1, 2))
+
+
+_strided_selu_onednn.defvjp(_strided_selu_onednn_fwd, _strided_selu_onednn_bwd)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(3, 4))
+def _transposed_selu_onednn(x, kernel, bias, stride, padding):
+    return jax.nn.selu(_transposed_onednn_out(x, kernel, stride, padding) + bias)
+
+
+def _transposed_selu_onednn_fwd(x, kernel, bias, stride, padding):
+    y = jax.nn.selu(_transposed_onednn_out(x, kernel, stride, padding) + bias)
+    return y, (x, kernel, y)
+
+
+def _transposed_selu_onednn_bwd(stride, padding, res, ct):
+    x, kernel, y = res
+    dz = _selu_grad(y, ct)
+    dx, dk = _transposed_onednn_bwd(stride, padding, (x, kernel), dz)
+    return dx, dk, dz.sum((0, 1, 2))
+
+
+_transposed_selu_onednn.defvjp(_transposed_selu_onednn_fwd, _transposed_selu_onednn_bwd)
+
+
 def formulation(name: str = "auto") -> str:
     """The formulation `name` traces: "auto" is `FORMULATION` (the environment variable
     CDRL_CONV_FORMULATION), and where that is "auto" too, "cpu" (this module's, chosen by timing
@@ -369,6 +426,27 @@ def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int, backend: 
     if k % stride:
         return _native(x, kernel, stride, padding)
     return _strided(x, kernel, stride, padding)
+
+
+def conv2d_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
+                backend: str = "auto") -> jax.Array:
+    """SELU(conv2d(x, kernel) + bias). On oneDNN, for a strided layer, one custom call with the
+    bias and SELU inside, whose backward reads SELU's derivative off its output."""
+    k = kernel.shape[0]
+    dense = x.shape[1] + 2 * padding == k and x.shape[2] + 2 * padding == k
+    if formulation(backend) == "onednn" and not dense:
+        return _strided_selu_onednn(x, kernel, bias, stride, padding)
+    return jax.nn.selu(conv2d(x, kernel, stride, padding, backend) + bias)
+
+
+def conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
+                        backend: str = "auto") -> jax.Array:
+    """SELU(conv_transpose(x, kernel) + bias). On oneDNN, for a layer of more than one input
+    pixel, the backward reads SELU's derivative off the output (oneDNN's input-gradient
+    primitive, the transposed forward, takes no post-ops: XLA adds the bias and applies SELU)."""
+    if formulation(backend) == "onednn" and x.shape[1] * x.shape[2] > 1 and padding <= kernel.shape[0] - 1:
+        return _transposed_selu_onednn(x, kernel, bias, stride, padding)
+    return jax.nn.selu(conv_transpose(x, kernel, stride, padding, backend) + bias)
 
 
 def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int,

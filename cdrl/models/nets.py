@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.models.arch import ArchConfig
-from cdrl.models.conv import conv2d, conv_transpose
+from cdrl.models.conv import conv2d, conv2d_selu, conv_transpose, conv_transpose_selu, formulation
 
 Params = dict
 
@@ -72,13 +72,13 @@ def init_obs_encoder(key, arch: ArchConfig) -> Params:
 
 
 def _conv_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
-               formulation: str = "auto") -> jax.Array:
-    return jax.nn.selu(conv2d(x, kernel, stride, padding, formulation) + bias)
+               backend: str = "auto") -> jax.Array:
+    return conv2d_selu(x, kernel, bias, stride, padding, backend)
 
 
 def _conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
-                         formulation: str = "auto") -> jax.Array:
-    return jax.nn.selu(conv_transpose(x, kernel, stride, padding, formulation) + bias)
+                         backend: str = "auto") -> jax.Array:
+    return conv_transpose_selu(x, kernel, bias, stride, padding, backend)
 
 
 # The layers next to the image (the first encoder layer, the last hidden decoder layer) have
@@ -98,7 +98,10 @@ _conv_transpose_selu_recomputed = jax.checkpoint(_conv_transpose_selu, static_ar
 def recomputes_image_layers(arch: ArchConfig) -> bool:
     """Whether the layers next to the image are recomputed in the backward pass: their output,
     `image_size / stride` squared times the first layer's features in float32, is at least
-    RECOMPUTE_FROM_BYTES a frame (the thesis preset: yes; small and tiny: no)."""
+    RECOMPUTE_FROM_BYTES a frame (the thesis preset: yes; small and tiny: no). Not on oneDNN:
+    its layers keep only their output, from which the backward reads SELU's derivative."""
+    if formulation(arch.conv) == "onednn":
+        return False
     return arch.encoder_sizes[1] ** 2 * arch.encoder[0].features * 4 >= RECOMPUTE_FROM_BYTES
 
 

@@ -10,6 +10,7 @@ Frames are NHWC and kernels HWIO, as everywhere in cdrl. Each pass takes the str
 leading padding; the trailing padding follows from the shapes:
 
 * `forward(x, kernel)`: y [n, (h + 2p - k) // s + 1, ..., o];
+* `forward_selu(x, kernel, bias)`: SELU(forward + bias), both inside the convolution;
 * `input_grad(dy, kernel, (h, w))`: the gradient of the forward's input, which is also PyTorch's
   transposed convolution of `dy` with the kernel's two channel axes swapped;
 * `kernel_grad(x, dy, k)`: the gradient of the forward's kernel, summed over the frames.
@@ -31,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 _TARGETS = {"cdrl_onednn_conv_forward": "CdrlConvForward", "cdrl_onednn_conv_input_grad": "CdrlConvInputGrad",
-            "cdrl_onednn_conv_kernel_grad": "CdrlConvKernelGrad"}
+            "cdrl_onednn_conv_kernel_grad": "CdrlConvKernelGrad", "cdrl_onednn_conv_forward_selu": "CdrlConvForwardSelu"}
 _RUNTIME = "onednn-cpu-gomp"
 # A pass of fewer multiply-adds runs on one thread (CDRL_ONEDNN_PARALLEL_MACS overrides it).
 PARALLEL_MACS = 1e7  # the wheel whose libdnnl.so.3 the extension links to
@@ -104,11 +105,11 @@ def warn_unavailable() -> None:
                   "the XLA formulation runs instead", RuntimeWarning, stacklevel=3)
 
 
-def _call(target: str, shape, a: jax.Array, b: jax.Array, stride: int, padding: int) -> jax.Array:
+def _call(target: str, shape, *operands: jax.Array, stride: int, padding: int) -> jax.Array:
     _load()
     out = jax.ShapeDtypeStruct(tuple(int(d) for d in shape), jnp.float32)
     return jax.ffi.ffi_call(target, out, vmap_method="sequential")(
-        a.astype(jnp.float32), b.astype(jnp.float32), stride=np.int64(stride), padding=np.int64(padding))
+        *(a.astype(jnp.float32) for a in operands), stride=np.int64(stride), padding=np.int64(padding))
 
 
 def out_size(size: int, k: int, stride: int, padding: int) -> int:
@@ -120,15 +121,24 @@ def forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.A
     n, h, w, _ = x.shape
     k, _, _, o = kernel.shape
     shape = (n, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
-    return _call("cdrl_onednn_conv_forward", shape, x, kernel, stride, padding)
+    return _call("cdrl_onednn_conv_forward", shape, x, kernel, stride=stride, padding=padding)
+
+
+def forward_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int) -> jax.Array:
+    """SELU(forward(x, kernel) + bias), the bias and SELU inside oneDNN's convolution."""
+    n, h, w, _ = x.shape
+    k, _, _, o = kernel.shape
+    shape = (n, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
+    return _call("cdrl_onednn_conv_forward_selu", shape, x, kernel, bias, stride=stride, padding=padding)
 
 
 def input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, size: tuple[int, int]) -> jax.Array:
     """d<forward(x, kernel), dy>/dx for frames x of spatial `size` (h, w)."""
     c = kernel.shape[2]
-    return _call("cdrl_onednn_conv_input_grad", (dy.shape[0], *size, c), dy, kernel, stride, padding)
+    return _call("cdrl_onednn_conv_input_grad", (dy.shape[0], *size, c), dy, kernel, stride=stride, padding=padding)
 
 
 def kernel_grad(x: jax.Array, dy: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
     """d<forward(x, kernel), dy>/d kernel for a k x k kernel, summed over the frames."""
-    return _call("cdrl_onednn_conv_kernel_grad", (k, k, x.shape[-1], dy.shape[-1]), x, dy, stride, padding)
+    return _call("cdrl_onednn_conv_kernel_grad", (k, k, x.shape[-1], dy.shape[-1]), x, dy, stride=stride,
+                 padding=padding)
