@@ -11,7 +11,8 @@ input, weights and output cotangent, and run
     input is the data: neither framework computes that gradient in training).
 
 backward = (forward + backward) - forward, from the medians. cdrl's functions are
-`cdrl.models.nets.conv2d` / `conv_transpose` (the formulations training uses), each jitted
+`cdrl.models.conv.conv2d_selu` / `conv_transpose_selu` (the layers as training runs them; the
+last decoder layer `conv_transpose` plus its bias), each jitted
 on its own; an XLA program of one layer misses the fusions across layers that the whole
 train step has, so the sum of the rows is not the step time (the README's train-throughput
 table has that). The LSTM row is T steps of the cell over B streams (forward: a
@@ -97,13 +98,15 @@ def _cdrl_layer(kind, spec, selu: bool, input_grad: bool, backend: str = "auto")
     import jax
     import jax.numpy as jnp
 
-    from cdrl.models import nets
+    from cdrl.models import conv
 
-    op = nets.conv2d if kind == "conv" else nets.conv_transpose
+    op = conv.conv2d if kind == "conv" else conv.conv_transpose
+    op_selu = conv.conv2d_selu if kind == "conv" else conv.conv_transpose_selu
 
-    def fwd(x, k, b):
-        y = op(x, k, spec.stride, spec.padding, backend) + b
-        return jax.nn.selu(y) if selu else y
+    def fwd(x, k, b):  # as `cdrl.models.nets` runs the layer
+        if selu:
+            return op_selu(x, k, b, spec.stride, spec.padding, backend)
+        return op(x, k, spec.stride, spec.padding, backend) + b
 
     def fwd_bwd(x, k, b, ct):
         argnums = (0, 1, 2) if input_grad else (1, 2)

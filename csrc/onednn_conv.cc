@@ -203,6 +203,51 @@ ffi::Error KernelGrad(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::Re
   return Run(s, kKernelGrad, x.typed_data(), dk->typed_data(), dy.typed_data());
 }
 
+// SELU(z + bias) for z [n, h, w, o] and bias [o]: one oneDNN binary addition with SELU's two
+// eltwise post-ops (the transposed convolution's forward, oneDNN's input-gradient primitive,
+// takes no post-ops of its own).
+struct CachedSelu {
+  int threads = 1;
+  dnnl::binary add;
+};
+
+ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::ResultBuffer<ffi::F32> y) {
+  auto zd = z.dimensions(), bd = bias.dimensions();
+  if (!Rank4(zd)) return ffi::Error::InvalidArgument("bias_selu: a rank-4 operand expected");
+  if (bd.size() != 1 || bd[0] != zd[3]) return ffi::Error::InvalidArgument("bias_selu: a bias per channel expected");
+  const int before = omp_get_max_threads();
+  try {
+    thread_local std::map<std::vector<int64_t>, CachedSelu> cache;
+    std::vector<int64_t> key{zd[0], zd[1], zd[2], zd[3]};
+    memory::desc zm({zd[0], zd[3], zd[1], zd[2]}, memory::data_type::f32, memory::format_tag::nhwc);
+    memory::desc bm({1, zd[3], 1, 1}, memory::data_type::f32, memory::format_tag::nhwc);
+    auto it = cache.find(key);
+    if (it == cache.end()) {
+      CachedSelu c;
+      // An elementwise pass of n*h*w*o values: worth a team from a tenth of a convolution's work.
+      c.threads = double(zd[0]) * zd[1] * zd[2] * zd[3] * 10 >= g_parallel_macs && g_threads > 0 ? g_threads : 1;
+      omp_set_num_threads(c.threads);
+      dnnl::post_ops ops;
+      ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
+      ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
+      dnnl::primitive_attr attr;
+      attr.set_post_ops(ops);
+      c.add = dnnl::binary(dnnl::binary::primitive_desc(Engine(), dnnl::algorithm::binary_add, zm, bm, zm, attr));
+      it = cache.emplace(key, std::move(c)).first;
+    }
+    if (omp_get_max_threads() != it->second.threads) omp_set_num_threads(it->second.threads);
+    auto& stream = Stream();
+    memory zmem(zm, Engine(), z.typed_data()), bmem(bm, Engine(), bias.typed_data()), ymem(zm, Engine(), y->typed_data());
+    it->second.add.execute(stream, {{DNNL_ARG_SRC_0, zmem}, {DNNL_ARG_SRC_1, bmem}, {DNNL_ARG_DST, ymem}});
+    stream.wait();
+  } catch (const dnnl::error& e) {
+    omp_set_num_threads(before);
+    return ffi::Error::Internal(std::string("oneDNN bias and SELU failed: ") + e.what());
+  }
+  if (omp_get_max_threads() != before) omp_set_num_threads(before);
+  return ffi::Error::Success();
+}
+
 }  // namespace
 
 #define CDRL_CONV_BINDING()                                                                   \
@@ -211,6 +256,11 @@ ffi::Error KernelGrad(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::Re
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForward, Forward, CDRL_CONV_BINDING());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvInputGrad, InputGrad, CDRL_CONV_BINDING());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlBiasSelu, BiasSelu,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::F32>>());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForwardSelu, ForwardSelu,
                               ffi::Ffi::Bind()
                                   .Arg<ffi::Buffer<ffi::F32>>()

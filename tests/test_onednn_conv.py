@@ -185,7 +185,9 @@ def test_a_run_records_its_convolution_backend():
 
 
 @needs_onednn
-@pytest.mark.parametrize("kind,size", [("conv", 12), ("conv", 76), ("transpose", 6), ("transpose", 20)])
+# sizes 2 and 1: a window that covers the whole input, a transposed layer from one pixel
+@pytest.mark.parametrize("kind,size", [("conv", 12), ("conv", 76), ("conv", 2), ("transpose", 6), ("transpose", 20),
+                                       ("transpose", 1)])
 @pytest.mark.parametrize("batched", ["none", "frames", "all"])
 def test_the_fused_selu_layer_equals_its_parts(kind, size, batched):
     """SELU(convolution + bias) on oneDNN (the bias and SELU inside the convolution, SELU's

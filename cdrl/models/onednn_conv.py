@@ -11,6 +11,7 @@ leading padding; the trailing padding follows from the shapes:
 
 * `forward(x, kernel)`: y [n, (h + 2p - k) // s + 1, ..., o];
 * `forward_selu(x, kernel, bias)`: SELU(forward + bias), both inside the convolution;
+* `bias_selu(z, bias)`: SELU(z + bias), one pass (after a transposed convolution);
 * `input_grad(dy, kernel, (h, w))`: the gradient of the forward's input, which is also PyTorch's
   transposed convolution of `dy` with the kernel's two channel axes swapped;
 * `kernel_grad(x, dy, k)`: the gradient of the forward's kernel, summed over the frames.
@@ -32,7 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 _TARGETS = {"cdrl_onednn_conv_forward": "CdrlConvForward", "cdrl_onednn_conv_input_grad": "CdrlConvInputGrad",
-            "cdrl_onednn_conv_kernel_grad": "CdrlConvKernelGrad", "cdrl_onednn_conv_forward_selu": "CdrlConvForwardSelu"}
+            "cdrl_onednn_conv_kernel_grad": "CdrlConvKernelGrad", "cdrl_onednn_conv_forward_selu": "CdrlConvForwardSelu",
+            "cdrl_onednn_bias_selu": "CdrlBiasSelu"}
 _RUNTIME = "onednn-cpu-gomp"
 # A pass of fewer multiply-adds runs on one thread (CDRL_ONEDNN_PARALLEL_MACS overrides it).
 PARALLEL_MACS = 1e7  # the wheel whose libdnnl.so.3 the extension links to
@@ -130,6 +132,14 @@ def forward_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, 
     k, _, _, o = kernel.shape
     shape = (n, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
     return _call("cdrl_onednn_conv_forward_selu", shape, x, kernel, bias, stride=stride, padding=padding)
+
+
+def bias_selu(z: jax.Array, bias: jax.Array) -> jax.Array:
+    """SELU(z + bias) for z [n, h, w, o] in one vectorised oneDNN pass."""
+    _load()
+    out = jax.ShapeDtypeStruct(z.shape, jnp.float32)
+    return jax.ffi.ffi_call("cdrl_onednn_bias_selu", out, vmap_method="sequential")(
+        z.astype(jnp.float32), bias.astype(jnp.float32))
 
 
 def input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, size: tuple[int, int]) -> jax.Array:
