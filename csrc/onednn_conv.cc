@@ -121,6 +121,20 @@ Cached Build(const Shapes& s, int64_t pass) {
   return c;
 }
 
+// OpenMP's thread count is a setting of the calling thread, which may be the caller's own
+// (another library on the same OpenMP runtime, as PyTorch's is): set for a pass, then put back.
+class ThreadsFor {
+ public:
+  ThreadsFor() : before_(omp_get_max_threads()) {}
+  void Use(int n) {
+    if (omp_get_max_threads() != n) omp_set_num_threads(n);
+  }
+  ~ThreadsFor() { Use(before_); }
+
+ private:
+  int before_;
+};
+
 Cached& Lookup(const Shapes& s, int64_t pass) {
   thread_local std::map<std::vector<int64_t>, Cached> cache;
   auto key = s.Key(pass);
@@ -132,12 +146,10 @@ Cached& Lookup(const Shapes& s, int64_t pass) {
 // Runs one pass. `x` and `y` are the frames and the windows' outputs (each the input or the
 // result, by pass); `kernel` is the kernel (forward, input gradient) or its gradient.
 ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y, float* bias = nullptr) {
-  // OpenMP's thread count is a setting of the calling thread, which may be the caller's own
-  // (another library on the same OpenMP runtime, as PyTorch's is): set for the pass, then put back.
-  const int before = omp_get_max_threads();
+  ThreadsFor threads;
   try {
     Cached& c = Lookup(s, pass);
-    if (before != c.threads) omp_set_num_threads(c.threads);
+    threads.Use(c.threads);
     auto& stream = Stream();
     memory xm(s.X(), Engine(), x), ym(s.Y(), Engine(), y);
     memory user(s.Kernel(memory::format_tag::hwio), Engine(), kernel);
@@ -158,10 +170,8 @@ ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y,
     }
     stream.wait();
   } catch (const dnnl::error& e) {
-    omp_set_num_threads(before);
     return ffi::Error::Internal(std::string("oneDNN convolution failed: ") + e.what());
   }
-  if (omp_get_max_threads() != before) omp_set_num_threads(before);
   return ffi::Error::Success();
 }
 
@@ -215,7 +225,7 @@ ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::Re
   auto zd = z.dimensions(), bd = bias.dimensions();
   if (!Rank4(zd)) return ffi::Error::InvalidArgument("bias_selu: a rank-4 operand expected");
   if (bd.size() != 1 || bd[0] != zd[3]) return ffi::Error::InvalidArgument("bias_selu: a bias per channel expected");
-  const int before = omp_get_max_threads();
+  ThreadsFor threads;
   try {
     thread_local std::map<std::vector<int64_t>, CachedSelu> cache;
     std::vector<int64_t> key{zd[0], zd[1], zd[2], zd[3]};
@@ -235,16 +245,14 @@ ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::Re
       c.add = dnnl::binary(dnnl::binary::primitive_desc(Engine(), dnnl::algorithm::binary_add, zm, bm, zm, attr));
       it = cache.emplace(key, std::move(c)).first;
     }
-    if (omp_get_max_threads() != it->second.threads) omp_set_num_threads(it->second.threads);
+    threads.Use(it->second.threads);
     auto& stream = Stream();
     memory zmem(zm, Engine(), z.typed_data()), bmem(bm, Engine(), bias.typed_data()), ymem(zm, Engine(), y->typed_data());
     it->second.add.execute(stream, {{DNNL_ARG_SRC_0, zmem}, {DNNL_ARG_SRC_1, bmem}, {DNNL_ARG_DST, ymem}});
     stream.wait();
   } catch (const dnnl::error& e) {
-    omp_set_num_threads(before);
     return ffi::Error::Internal(std::string("oneDNN bias and SELU failed: ") + e.what());
   }
-  if (omp_get_max_threads() != before) omp_set_num_threads(before);
   return ffi::Error::Success();
 }
 

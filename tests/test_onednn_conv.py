@@ -157,6 +157,7 @@ def test_a_train_step_and_its_checkpoint_are_the_same_on_both_backends():
 
 def test_onednn_falls_back_to_xla_with_one_warning(monkeypatch):
     """Where the extension is not there, `onednn` traces XLA's CPU formulation and warns once."""
+    monkeypatch.delenv("CDRL_ONEDNN", raising=False)  # CI runs this file with the extension off too
     monkeypatch.setattr(onednn_conv, "_extension_path", lambda: None)
     monkeypatch.setattr(onednn_conv, "_load", onednn_conv._load.__wrapped__)  # uncached: sees the missing file
     onednn_conv.warn_unavailable.cache_clear()

@@ -30,10 +30,12 @@ differentiated through their `custom_vjp`, so the leaves need no derivative of t
 The `onednn` backend (`--conv onednn`, `ArchConfig.conv`) runs the three passes as XLA custom
 calls into oneDNN, the library PyTorch's CPU convolutions run on (`cdrl.models.onednn_conv`):
 the strided forward, the input gradient (which is also the transposed forward) and the kernel
-gradient. The thesis's layers then train 1.2-1.3 times as fast as in the formulation above
-(`benchmarks/train_throughput.py --onednn`). Without the extension it falls back to "cpu".
+gradient. `conv2d_selu` and `conv_transpose_selu` also put the bias and SELU into oneDNN, and
+read SELU's derivative off the layer's output. The thesis-sized model then trains 1.2-2.0
+times as fast as in the formulation above (`benchmarks/train_throughput.py --onednn`). Without
+the extension it falls back to "cpu".
 
-`jax.custom_vjp` wires them: the gradient of `conv2d` with respect to its input is the
+`jax.custom_vjp` wires them (`_conv_pair`, for both backends): the gradient of `conv2d` with respect to its input is the
 transposed convolution of the output gradient, and the gradient of `conv_transpose` with
 respect to its input is the strided convolution of the output gradient (XLA's own rules
 would run both through dilated convolutions, many times slower on the CPU). A layer whose
@@ -206,52 +208,58 @@ def _subpixel_full(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     return y.reshape(n, h + q - 1, w + q - 1, s, s, c_out).transpose(0, 1, 3, 2, 4, 5).reshape(n, rows, cols, c_out)
 
 
-def _subpixel_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
-    """PyTorch `ConvTranspose2d`: the full transposed convolution, `padding` cropped on each side."""
-    y = _subpixel_full(x, kernel, stride)
-    return y[:, padding: y.shape[1] - padding, padding: y.shape[2] - padding]
+def _xla_input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: int, w: int) -> jax.Array:
+    """d<conv2d(x, kernel), dy>/dx for x of spatial size h x w: the full transposed convolution
+    covers the padded input up to the last window's end; drop the leading padding, keep h rows
+    (rows past the last window get no gradient)."""
+    dx = _subpixel_full(dy, _flip_io(kernel), stride)[:, padding: padding + h, padding: padding + w]
+    return jnp.pad(dx, ((0, 0), (0, h - dx.shape[1]), (0, w - dx.shape[2]), (0, 0)))
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _strided(x, kernel, stride, padding):
-    return _strided_forward(x, kernel, stride, padding)
+def _transposed_by(input_grad, x, kernel, stride, padding):
+    """PyTorch's transposed convolution (kernel [kh, kw, in, out]) as the input gradient of the
+    strided convolution whose kernel has the two channel axes swapped."""
+    k = kernel.shape[0]
+    h, w = ((size - 1) * stride - 2 * padding + k for size in x.shape[1:3])
+    return input_grad(x, _flip_io(kernel), stride, padding, h, w)
 
 
-def _strided_fwd(x, kernel, stride, padding):
-    return _strided_forward(x, kernel, stride, padding), (x, kernel)
+def _conv_pair(forward, input_grad, kernel_grad):
+    """The strided convolution and its transpose from three passes, `forward(x, kernel, s, p)`,
+    `input_grad(dy, kernel, s, p, h, w)` and `kernel_grad(x, dy, k, s, p)`, each wired by
+    `jax.custom_vjp`: the gradient of one with respect to its input is the other."""
+
+    @partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+    def strided(x, kernel, stride, padding):
+        return forward(x, kernel, stride, padding)
+
+    def strided_fwd(x, kernel, stride, padding):
+        return forward(x, kernel, stride, padding), (x, kernel)
+
+    def strided_bwd(stride, padding, res, ct):
+        x, kernel = res
+        dx = input_grad(ct, kernel, stride, padding, x.shape[1], x.shape[2])
+        return dx, kernel_grad(x, ct, kernel.shape[0], stride, padding)
+
+    @partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+    def transposed(x, kernel, stride, padding):
+        return _transposed_by(input_grad, x, kernel, stride, padding)
+
+    def transposed_fwd(x, kernel, stride, padding):
+        return _transposed_by(input_grad, x, kernel, stride, padding), (x, kernel)
+
+    def transposed_bwd(stride, padding, res, ct):
+        # <conv_transpose(x, K), ct> = <x, conv2d(ct, K with in and out swapped)>.
+        x, kernel = res
+        dx = forward(ct, _flip_io(kernel), stride, padding)
+        return dx, _flip_io(kernel_grad(ct, x, kernel.shape[0], stride, padding))
+
+    strided.defvjp(strided_fwd, strided_bwd)
+    transposed.defvjp(transposed_fwd, transposed_bwd)
+    return strided, transposed
 
 
-def _strided_bwd(stride, padding, res, ct):
-    x, kernel = res
-    # The full transposed convolution covers the padded input up to the last window's end:
-    # drop the leading padding, keep h rows (rows past the last window get no gradient).
-    _, h, w, _ = x.shape
-    dx = _subpixel_full(ct, _flip_io(kernel), stride)[:, padding: padding + h, padding: padding + w]
-    dx = jnp.pad(dx, ((0, 0), (0, h - dx.shape[1]), (0, w - dx.shape[2]), (0, 0)))
-    return dx, _kernel_grad(x, ct, kernel.shape[0], stride, padding)
-
-
-_strided.defvjp(_strided_fwd, _strided_bwd)
-
-
-@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _transposed(x, kernel, stride, padding):
-    return _subpixel_transpose(x, kernel, stride, padding)
-
-
-def _transposed_fwd(x, kernel, stride, padding):
-    return _subpixel_transpose(x, kernel, stride, padding), (x, kernel)
-
-
-def _transposed_bwd(stride, padding, res, ct):
-    # <conv_transpose(x, K), ct> = <x, conv2d(ct, K with in and out swapped)>.
-    x, kernel = res
-    dx = _strided_forward(ct, _flip_io(kernel), stride, padding)
-    dk = _flip_io(_kernel_grad(ct, x, kernel.shape[0], stride, padding))
-    return dx, dk
-
-
-_transposed.defvjp(_transposed_fwd, _transposed_bwd)
+_strided, _transposed = _conv_pair(_strided_forward, _xla_input_grad, _kernel_grad)
 
 
 # --------------------------------------------------------------------------- oneDNN's passes
@@ -282,50 +290,10 @@ def _input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: 
     channel by XLA's sub-pixel form (where the stride divides the kernel)."""
     if kernel.shape[2] > 1 or kernel.shape[0] % stride:
         return _onednn_input_grad(dy, kernel, stride, padding, h, w)
-    dx = _subpixel_full(dy, _flip_io(kernel), stride)[:, padding: padding + h, padding: padding + w]
-    return jnp.pad(dx, ((0, 0), (0, h - dx.shape[1]), (0, w - dx.shape[2]), (0, 0)))
+    return _xla_input_grad(dy, kernel, stride, padding, h, w)
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _strided_onednn(x, kernel, stride, padding):
-    return _onednn_forward(x, kernel, stride, padding)
-
-
-def _strided_onednn_fwd(x, kernel, stride, padding):
-    return _onednn_forward(x, kernel, stride, padding), (x, kernel)
-
-
-def _strided_onednn_bwd(stride, padding, res, ct):
-    x, kernel = res
-    dx = _input_grad(ct, kernel, stride, padding, x.shape[1], x.shape[2])
-    return dx, _onednn_kernel_grad(x, ct, kernel.shape[0], stride, padding)
-
-
-_strided_onednn.defvjp(_strided_onednn_fwd, _strided_onednn_bwd)
-
-
-def _transposed_onednn_out(x, kernel, stride, padding):
-    k = kernel.shape[0]
-    h, w = ((size - 1) * stride - 2 * padding + k for size in x.shape[1:3])
-    return _input_grad(x, _flip_io(kernel), stride, padding, h, w)
-
-
-@partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _transposed_onednn(x, kernel, stride, padding):
-    return _transposed_onednn_out(x, kernel, stride, padding)
-
-
-def _transposed_onednn_fwd(x, kernel, stride, padding):
-    return _transposed_onednn_out(x, kernel, stride, padding), (x, kernel)
-
-
-def _transposed_onednn_bwd(stride, padding, res, ct):
-    x, kernel = res
-    dx = _onednn_forward(ct, _flip_io(kernel), stride, padding)
-    return dx, _flip_io(_onednn_kernel_grad(ct, x, kernel.shape[0], stride, padding))
-
-
-_transposed_onednn.defvjp(_transposed_onednn_fwd, _transposed_onednn_bwd)
+_strided_onednn, _transposed_onednn = _conv_pair(_onednn_forward, _input_grad, _onednn_kernel_grad)
 
 
 # SELU(z) = λ z for z > 0, λ α (e^z - 1) else; its derivative, λ or λ α e^z = y + λ α, is a
@@ -369,7 +337,7 @@ def _onednn_bias_selu(z: jax.Array, bias: jax.Array) -> jax.Array:
 
 
 def _transposed_selu_onednn_out(x, kernel, bias, stride, padding):
-    return _onednn_bias_selu(_transposed_onednn_out(x, kernel, stride, padding), bias)
+    return _onednn_bias_selu(_transposed_by(_input_grad, x, kernel, stride, padding), bias)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(3, 4))
@@ -385,7 +353,8 @@ def _transposed_selu_onednn_fwd(x, kernel, bias, stride, padding):
 def _transposed_selu_onednn_bwd(stride, padding, res, ct):
     x, kernel, y = res
     dz = _selu_grad(y, ct)
-    dx, dk = _transposed_onednn_bwd(stride, padding, (x, kernel), dz)
+    dx = _onednn_forward(dz, _flip_io(kernel), stride, padding)
+    dk = _flip_io(_onednn_kernel_grad(dz, x, kernel.shape[0], stride, padding))
     return dx, dk, dz.sum((0, 1, 2))
 
 
