@@ -11,6 +11,7 @@ from cdrl.models.arch import PRESETS, SMALL, THESIS, TINY, ArchConfig, ConvSpec,
 from cdrl.models.base import StepInput, Variant
 from cdrl.models.controller import CONTROLLER_VARIANTS
 from cdrl.models.observation import OBSERVATION_VARIANTS
+from cdrl.models import onednn_layers  # noqa: F401 (registers `--conv onednn`'s layers with cdrl.models.conv)
 
 VARIANTS: dict[str, type[Variant]] = {cls.name: cls for cls in OBSERVATION_VARIANTS + CONTROLLER_VARIANTS}
 

@@ -28,7 +28,8 @@ configuration, unrolled for a few and by `lax.map` for many. The passes are only
 differentiated through their `custom_vjp`, so the leaves need no derivative of their own.
 
 The `onednn` backend (`--conv onednn`, `ArchConfig.conv`) runs the three passes as XLA custom
-calls into oneDNN, the library PyTorch's CPU convolutions run on (`cdrl.models.onednn_conv`):
+calls into oneDNN, the library PyTorch's CPU convolutions run on (`cdrl.models.onednn_conv`,
+wired in `cdrl.models.onednn_layers`):
 the strided forward, the input gradient (which is also the transposed forward) and the kernel
 gradient. `conv2d_selu` and `conv_transpose_selu` also put the bias and SELU into oneDNN, and
 read SELU's derivative off the layer's output. The thesis-sized model then trains 1.2-2.0
@@ -47,6 +48,7 @@ from __future__ import annotations
 
 import os
 from functools import partial
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -262,103 +264,20 @@ def _conv_pair(forward, input_grad, kernel_grad):
 _strided, _transposed = _conv_pair(_strided_forward, _xla_input_grad, _kernel_grad)
 
 
-# --------------------------------------------------------------------------- oneDNN's passes
-# A transposed convolution is the input gradient of the strided one with the kernel's channel
-# axes swapped, so the three custom calls of `onednn_conv` serve both layers and their
-# gradients. Each is a leaf with the batching rule above. One pass stays on XLA: an input
-# gradient onto a single channel (the thesis decoder's last layer forward, 16 -> 1: 4.6 ms with
-# the sub-pixel form against 6.2 ms on oneDNN over 32 frames, 37 against 51 ms over 256).
+class BackendLayers(NamedTuple):
+    """A backend's convolution layers, each with its `jax.custom_vjp`: `strided(x, kernel, s, p)`,
+    `transposed(x, kernel, s, p)`, and `strided_selu` / `transposed_selu(x, kernel, bias, s, p)`
+    (SELU(layer + bias))."""
+
+    strided: Callable
+    transposed: Callable
+    strided_selu: Callable
+    transposed_selu: Callable
 
 
-@_leaf
-def _onednn_forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
-    return onednn_conv.forward(x, kernel, stride, padding)
-
-
-@_leaf
-def _onednn_input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: int, w: int) -> jax.Array:
-    return onednn_conv.input_grad(dy, kernel, stride, padding, (h, w))
-
-
-@_leaf(foldable=False)
-def _onednn_kernel_grad(x: jax.Array, dy: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
-    return onednn_conv.kernel_grad(x, dy, k, stride, padding)
-
-
-def _input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: int, w: int) -> jax.Array:
-    """d<conv2d(x, kernel), dy>/dx for x of spatial size h x w: on oneDNN, or onto a single
-    channel by XLA's sub-pixel form (where the stride divides the kernel)."""
-    if kernel.shape[2] > 1 or kernel.shape[0] % stride:
-        return _onednn_input_grad(dy, kernel, stride, padding, h, w)
-    return _xla_input_grad(dy, kernel, stride, padding, h, w)
-
-
-_strided_onednn, _transposed_onednn = _conv_pair(_onednn_forward, _input_grad, _onednn_kernel_grad)
-
-
-# SELU(z) = λ z for z > 0, λ α (e^z - 1) else; its derivative, λ or λ α e^z = y + λ α, is a
-# function of the output y: the backward passes need no pre-activation and no exponential.
-_SELU_ALPHA = 1.6732632423543772
-_SELU_SCALE = 1.0507009873554805
-
-
-def _selu_grad(y: jax.Array, ct: jax.Array) -> jax.Array:
-    return ct * jnp.where(y > 0, _SELU_SCALE, y + _SELU_SCALE * _SELU_ALPHA)
-
-
-@_leaf
-def _onednn_forward_selu(x: jax.Array, kernel_bias, stride: int, padding: int) -> jax.Array:
-    return onednn_conv.forward_selu(x, kernel_bias[0], kernel_bias[1], stride, padding)
-
-
-@partial(jax.custom_vjp, nondiff_argnums=(3, 4))
-def _strided_selu_onednn(x, kernel, bias, stride, padding):
-    return _onednn_forward_selu(x, (kernel, bias), stride, padding)
-
-
-def _strided_selu_onednn_fwd(x, kernel, bias, stride, padding):
-    y = _onednn_forward_selu(x, (kernel, bias), stride, padding)
-    return y, (x, kernel, y)
-
-
-def _strided_selu_onednn_bwd(stride, padding, res, ct):
-    x, kernel, y = res
-    dz = _selu_grad(y, ct)
-    dx = _input_grad(dz, kernel, stride, padding, x.shape[1], x.shape[2])
-    return dx, _onednn_kernel_grad(x, dz, kernel.shape[0], stride, padding), dz.sum((0, 1, 2))
-
-
-_strided_selu_onednn.defvjp(_strided_selu_onednn_fwd, _strided_selu_onednn_bwd)
-
-
-@_leaf
-def _onednn_bias_selu(z: jax.Array, bias: jax.Array) -> jax.Array:
-    return onednn_conv.bias_selu(z, bias)
-
-
-def _transposed_selu_onednn_out(x, kernel, bias, stride, padding):
-    return _onednn_bias_selu(_transposed_by(_input_grad, x, kernel, stride, padding), bias)
-
-
-@partial(jax.custom_vjp, nondiff_argnums=(3, 4))
-def _transposed_selu_onednn(x, kernel, bias, stride, padding):
-    return _transposed_selu_onednn_out(x, kernel, bias, stride, padding)
-
-
-def _transposed_selu_onednn_fwd(x, kernel, bias, stride, padding):
-    y = _transposed_selu_onednn_out(x, kernel, bias, stride, padding)
-    return y, (x, kernel, y)
-
-
-def _transposed_selu_onednn_bwd(stride, padding, res, ct):
-    x, kernel, y = res
-    dz = _selu_grad(y, ct)
-    dx = _onednn_forward(dz, _flip_io(kernel), stride, padding)
-    dk = _flip_io(_onednn_kernel_grad(dz, x, kernel.shape[0], stride, padding))
-    return dx, dk, dz.sum((0, 1, 2))
-
-
-_transposed_selu_onednn.defvjp(_transposed_selu_onednn_fwd, _transposed_selu_onednn_bwd)
+# The backends beyond XLA's own, by formulation name; `cdrl.models.onednn_layers` registers
+# "onednn" (it builds on this module's passes, so this module does not import it).
+BACKEND_LAYERS: dict[str, BackendLayers] = {}
 
 
 def formulation(name: str = "auto") -> str:
@@ -400,7 +319,7 @@ def conv2d(x: jax.Array, kernel: jax.Array, stride: int, padding: int, backend: 
         x = jnp.pad(x, ((0, 0), (padding, padding), (padding, padding), (0, 0)))
         return (x.reshape(n, k * k * c_in) @ kernel.reshape(k * k * c_in, c_out)).reshape(n, 1, 1, c_out)
     if form == "onednn":
-        return _strided_onednn(x, kernel, stride, padding)
+        return BACKEND_LAYERS["onednn"].strided(x, kernel, stride, padding)
     if k % stride:
         return _native(x, kernel, stride, padding)
     return _strided(x, kernel, stride, padding)
@@ -415,7 +334,7 @@ def conv2d_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, p
     k = kernel.shape[0]
     dense = x.shape[1] + 2 * padding == k and x.shape[2] + 2 * padding == k
     if formulation(backend) == "onednn" and not dense:
-        return _strided_selu_onednn(x, kernel, bias, stride, padding)
+        return BACKEND_LAYERS["onednn"].strided_selu(x, kernel, bias, stride, padding)
     return jax.nn.selu(conv2d(x, kernel, stride, padding, backend) + bias)
 
 
@@ -426,7 +345,7 @@ def conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride
     input-gradient primitive, the transposed forward, takes no post-ops); the backward reads
     SELU's derivative off the output."""
     if formulation(backend) == "onednn" and x.shape[1] * x.shape[2] > 1 and padding <= kernel.shape[0] - 1:
-        return _transposed_selu_onednn(x, kernel, bias, stride, padding)
+        return BACKEND_LAYERS["onednn"].transposed_selu(x, kernel, bias, stride, padding)
     return jax.nn.selu(conv_transpose(x, kernel, stride, padding, backend) + bias)
 
 
@@ -446,7 +365,7 @@ def conv_transpose(x: jax.Array, kernel: jax.Array, stride: int, padding: int,
         y = x.reshape(n, c_in) @ kernel.transpose(2, 0, 1, 3).reshape(c_in, k * k * c_out)
         return y.reshape(n, k, k, c_out)[:, padding: k - padding, padding: k - padding]
     if form == "onednn":
-        return _transposed_onednn(x, kernel, stride, padding)
+        return BACKEND_LAYERS["onednn"].transposed(x, kernel, stride, padding)
     if k % stride:
         return _native_transpose(x, kernel, stride, padding)
     return _transposed(x, kernel, stride, padding)

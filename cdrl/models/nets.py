@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.models.arch import ArchConfig
-from cdrl.models.conv import conv2d, conv2d_selu, conv_transpose, conv_transpose_selu, formulation
+from cdrl.models.conv import conv2d, conv2d_selu, conv_transpose, conv_transpose_selu, formulation  # noqa: F401 (nets.conv2d: the API)
 
 Params = dict
 
