@@ -9,6 +9,10 @@ One of three programs, compiled and warmed up, then run `--calls` times under
            `--preset`, `--batch` games; benchmarks/online_throughput.py's programs)
   game     the vmapped game, policy + step + drawing, `--batch` games x 64 steps a call
            (benchmarks/env_throughput.py's rollout)
+  sweep    the vmapped sweep step of `--configs` configurations (`cdrl.runs.sweep.sweep_step`,
+           an lr x momentum grid; benchmarks/sweep_throughput.py's program)
+
+`--conv` picks how the train and sweep programs compute their convolutions (`ArchConfig.conv`).
 
 Every operation event of the trace (an XLA fusion, convolution, matrix product, copy, ...;
 the runtime's own events, Python's and control flow's, which contain the others, left out) is
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import gzip
 import json
 import os
@@ -48,7 +53,9 @@ NOT_OPERATIONS = ("$", "np.asarray", "PjitFunction", "while", "conditional", "ca
 
 def _parse(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--program", choices=["train", "online", "game"], default="train")
+    ap.add_argument("--program", choices=["train", "online", "game", "sweep"], default="train")
+    ap.add_argument("--conv", default="auto", help="convolution backend of train and sweep (default: auto)")
+    ap.add_argument("--configs", type=int, default=8, help="configurations of the sweep (default: 8)")
     ap.add_argument("--preset", default="thesis", help="model preset (train, online)")
     ap.add_argument("--variant", default="main", help="model variant (train)")
     ap.add_argument("--learner", choices=["rollout", "real", "ppo"], default="rollout", help="online learner")
@@ -135,7 +142,7 @@ def _train_program(args):
     from train_throughput import _chunk_arrays
 
     batch, unroll = args.batch or 1, args.unroll
-    arch = PRESETS[args.preset]
+    arch = dataclasses.replace(PRESETS[args.preset], conv=args.conv)
     variant = make_variant(args.variant, arch)
     hp = HParams.create(variant, lr=0.1, momentum=0.9)
     obs, next_obs, is_first = _chunk_arrays(arch, unroll, batch, 0)
@@ -149,8 +156,37 @@ def _train_program(args):
         box[0], metrics = train_step(variant, box[0], hp, chunk)
         float(metrics["loss"])
 
-    return call, text, {"variant": args.variant, "preset": args.preset, "batch": batch, "unroll": unroll,
-                        "frames_per_call": batch * unroll}
+    return call, text, {"variant": args.variant, "preset": args.preset, "conv": args.conv, "batch": batch,
+                        "unroll": unroll, "frames_per_call": batch * unroll}
+
+
+def _sweep_program(args):
+    """(call, compiled text, description) of `--configs` configurations' vmapped train step."""
+    import jax
+    import numpy as np
+
+    from cdrl.models import make_variant
+    from cdrl.models.arch import PRESETS
+    from cdrl.runs.config import RunConfig
+    from cdrl.runs.sweep import Grid, init_sweep, sweep_step
+    from sweep_throughput import chunk
+
+    batch, unroll, n = args.batch or 1, args.unroll, args.configs
+    arch = dataclasses.replace(PRESETS[args.preset], conv=args.conv)
+    variant = make_variant(args.variant, arch)
+    base = RunConfig(variant=args.variant, preset=args.preset, batch=batch, unroll=unroll, conv=args.conv)
+    cfgs = Grid(lr=tuple(0.1 / 2 ** i for i in range(n))).configs(base)
+    chunks = chunk(np.random.default_rng(0), arch, unroll, batch, lead=(n,))
+    states, hps = init_sweep(variant, cfgs)
+    box = [states, np.ones((n,), bool)]
+    text = sweep_step.lower(variant, states, hps, box[1], chunks).compile().as_text()
+
+    def call():
+        box[0], box[1], metrics = sweep_step(variant, box[0], hps, box[1], chunks)
+        jax.block_until_ready(metrics["loss"])
+
+    return call, text, {"variant": args.variant, "preset": args.preset, "conv": args.conv, "configs": n,
+                        "batch": batch, "unroll": unroll, "frames_per_call": n * batch * unroll}
 
 
 def _online_program(args):
@@ -178,7 +214,7 @@ def _game_program(args):
     return rollout._call, text, {"policy": "uniform", "batch": batch, "steps": 64, "frames_per_call": batch * 64}
 
 
-PROGRAMS = {"train": _train_program, "online": _online_program, "game": _game_program}
+PROGRAMS = {"train": _train_program, "online": _online_program, "game": _game_program, "sweep": _sweep_program}
 
 
 def main(argv=None) -> int:

@@ -23,6 +23,7 @@ after. One JSON line at the end (`--out FILE` also writes it there).
 
     .venv/bin/python benchmarks/scaling.py --out benchmarks/results/scaling.json   # small preset
     .venv/bin/python benchmarks/scaling.py --quick                                  # tiny: does it run
+    .venv/bin/python benchmarks/scaling.py --conv onednn                            # oneDNN's convolutions
 """
 from __future__ import annotations
 
@@ -65,7 +66,7 @@ def worker(setup: dict) -> None:
 
     count = setup["per_device"] * jax.device_count()
     base = RunConfig(variant="main", preset=setup["preset"], batch=setup["batch"], unroll=setup["unroll"],
-                     tensorboard=False)
+                     conv=setup["conv"], tensorboard=False)
     cfgs = Grid(lr=tuple(0.1 / 2 ** i for i in range(count))).configs(base)
     axis = ConfigAxis.create(0, len(cfgs))
     episodes = synthetic_episodes(2 * setup["batch"], 4 * setup["unroll"] + 1, base.arch.image_size)
@@ -121,6 +122,7 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=None, help="untimed steps, the compile (default: 3; --quick: 2)")
     parser.add_argument("--steps", type=int, default=None, help="steps per timed window (default: 10; --quick: 2)")
     parser.add_argument("--repeats", type=int, default=None, help="timed windows per layout (default: 5; --quick: 2)")
+    parser.add_argument("--conv", default=None, help="how the convolutions are computed (default: auto)")
     parser.add_argument("--quick", action="store_true", help="a smoke test: tiny preset, a few steps")
     parser.add_argument("--out", type=Path, default=None, help="also write the final JSON line to this file")
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
@@ -131,6 +133,7 @@ def main(argv=None) -> int:
     defaults = ({"preset": "tiny", "per_device": 2, "batch": 2, "unroll": 4, "warmup": 2, "steps": 2, "repeats": 2}
                 if args.quick else
                 {"preset": "small", "per_device": 4, "batch": 4, "unroll": 16, "warmup": 3, "steps": 10, "repeats": 5})
+    defaults["conv"] = "auto"
     setup = {k: getattr(args, k) if getattr(args, k) is not None else v for k, v in defaults.items()}
     if (os.cpu_count() or 1) < 2:
         raise SystemExit("scaling needs at least 2 CPU cores")

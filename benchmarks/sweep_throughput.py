@@ -40,6 +40,7 @@ both sides (and the lanes' init) are reported beside them; the target is 2x for 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 from pathlib import Path
@@ -67,6 +68,8 @@ def chunk(rng, arch, T: int, B: int, lead: tuple[int, ...] = ()) -> Chunk:
 # The target speed-up of a sweep over running its configurations one after another, by preset
 # and number of configurations.
 TARGETS = {("tiny", 8): 2.0, ("small", 8): 1.3, ("thesis", 8): 1.0}
+# The target of the sweep over PyTorch training the same configurations one after another.
+TORCH_TARGETS = {("small", 8): 1.5}
 # The target of an 8-seed sweep of a learner that plays the game (issue 48), at any preset.
 LEARNER_TARGET = 2.0
 
@@ -79,10 +82,11 @@ def timed(fn, *args):
     return out, time.perf_counter() - t0
 
 
-def alternate(args, n: int, frames: int, one, swept) -> tuple[list[float], list[float]]:
+def alternate(args, n: int, frames: int, one, swept, then=None) -> tuple[list[float], list[float]]:
     """Frames per second of `args.repeats` alternating repeats: the N configurations one after
     another (`one(i)`, a step of configuration i), then the sweep (`swept()`, a step of all),
-    `args.steps` steps each. Both return a loss, read back to the host after every step."""
+    `args.steps` steps each, then `then()` where given (timed by itself). Both return a loss,
+    read back to the host after every step."""
     seq_fps, sweep_fps = [], []
     for _ in range(args.repeats):
         t0 = time.perf_counter()
@@ -94,6 +98,8 @@ def alternate(args, n: int, frames: int, one, swept) -> tuple[list[float], list[
         for _ in range(args.steps):
             np.asarray(swept())
         sweep_fps.append(frames / (time.perf_counter() - t0))
+        if then is not None:
+            then()
     return seq_fps, sweep_fps
 
 
@@ -105,7 +111,7 @@ def learner_result(args) -> dict:
     n, T, B = args.configs, args.unroll, args.batch
     variant = args.variant if args.variant != "main" or not learner_class(args.learner).has_world_model \
         else "final_proposal"
-    base = RunConfig(learner=args.learner, variant=variant, preset=args.preset, batch=B, unroll=T)
+    base = RunConfig(learner=args.learner, variant=variant, preset=args.preset, batch=B, unroll=T, conv=args.conv)
     cfgs = Grid(seed=tuple(range(n))).configs(base)
     job = LearnerSweepJob(cfgs)
     (states, _), init_s = timed(job.init)
@@ -128,6 +134,7 @@ def learner_result(args) -> dict:
 
     seq_fps, sweep_fps = alternate(args, n, n * T * B * args.steps, one, swept)
     return {"benchmark": "sweep_throughput", "learner": args.learner, "variant": variant, "preset": args.preset,
+            "conv": args.conv,
             "configs": n, "swept": "seed", "batch": B, "unroll": T, "steps_per_repeat": args.steps,
             "repeats": args.repeats, "lanes_alive": int(np.sum(np.asarray(alive))),
             "seq_fps": seq_fps, "sweep_fps": sweep_fps, "compile_single_s": compile_single,
@@ -145,6 +152,11 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="alternating repeats (default: 3)")
     parser.add_argument("--quick", action="store_true", help="a smoke test: tiny preset, T 8, 2 steps per repeat")
     parser.add_argument("--out", type=Path, default=None, help="also write the final JSON line to this file")
+    parser.add_argument("--torch", action="store_true",
+                        help="also train the configurations one after another with PyTorch's reference (its own "
+                             "process, each repeat after the sweep); reports sweep / torch")
+    parser.add_argument("--conv", default="auto",
+                        help="how the convolutions are computed (cdrl.models.conv.FORMULATIONS; default: auto)")
     parser.add_argument("--learner", default=None,
                         help="measure a sweep of this learner that plays the game over N seeds (default: none, offline)")
     args = parser.parse_args(argv)
@@ -160,13 +172,13 @@ def main(argv=None) -> int:
     if args.learner:
         return report_learner(learner_result(args), load_avg_start, args.out)
 
-    arch = preset(args.preset)
+    arch = dataclasses.replace(preset(args.preset), conv=args.conv)
     variant = make_variant(args.variant, arch)
     n, T, B = args.configs, args.unroll, args.batch
     # An lr x momentum grid of N points (2 momenta when N is even).
     moms = (0.9, 0.5) if n % 2 == 0 else (0.9,)
     lrs = tuple(0.1 / 2 ** i for i in range(n // len(moms)))
-    base = RunConfig(variant=args.variant, preset=args.preset, batch=B, unroll=T)
+    base = RunConfig(variant=args.variant, preset=args.preset, batch=B, unroll=T, conv=args.conv)
     cfgs = Grid(lr=lrs, momentum=moms).configs(base)
     rng = np.random.default_rng(0)
     chunks = chunk(rng, arch, T, B, lead=(n,))
@@ -197,13 +209,31 @@ def main(argv=None) -> int:
         states, alive, m = sweep_step(variant, states, hps, alive, chunks)
         return m["loss"]
 
-    seq_fps, sweep_fps = alternate(args, n, n * T * B * args.steps, one, swept)
+    torch_fps = []
+    if args.torch:
+        # PyTorch's configurations differ only in their learning rate and momentum, so one model
+        # trained n * steps steps is their time one after another.
+        from train_throughput import TorchWorker
+
+        c0 = take(chunks, 0)
+        worker = TorchWorker(arch, args.variant, take(states.params, 0),
+                             (c0.obs, c0.next_obs, c0.is_first), os.cpu_count())
+        worker.run(2)  # warm
+
+        def torch_one_after_another():
+            step_s, _ = worker.run(n * args.steps)
+            torch_fps.append(T * B / step_s)
+
+        seq_fps, sweep_fps = alternate(args, n, n * T * B * args.steps, one, swept, torch_one_after_another)
+        worker.close()
+    else:
+        seq_fps, sweep_fps = alternate(args, n, n * T * B * args.steps, one, swept)
 
     ratios = [sw / sq for sq, sw in zip(seq_fps, sweep_fps)]
     r_spread = spread(ratios)
     target = TARGETS.get((args.preset, n))
     result = {
-        "benchmark": "sweep_throughput", "variant": args.variant, "preset": args.preset, "configs": n,
+        "benchmark": "sweep_throughput", "variant": args.variant, "preset": args.preset, "conv": args.conv, "configs": n,
         "batch": B, "unroll": T, "steps_per_repeat": args.steps, "repeats": args.repeats, "quick": args.quick,
         "cpu_count": os.cpu_count(), "load_avg_start": load_avg_start,
         "sequential_frames_per_s": float(np.median(seq_fps)), "sweep_frames_per_s": float(np.median(sweep_fps)),
@@ -220,6 +250,13 @@ def main(argv=None) -> int:
         "target_met_all_repeats": None if target is None else bool(r_spread["min"] >= target),
         "load_avg_end": os.getloadavg()[0],
     })
+    if torch_fps:
+        over_torch = [sw / tf for sw, tf in zip(sweep_fps, torch_fps)]
+        target_torch = TORCH_TARGETS.get((args.preset, n))
+        result["torch"] = {"frames_per_s": float(np.median(torch_fps)), "repeats": [round(x, 1) for x in torch_fps],
+                           "ratio_definition": "sweep frames/s / PyTorch's frames/s one after another, same repeat",
+                           "sweep_over_torch": spread(over_torch), "target": target_torch,
+                           "target_met": None if target_torch is None else bool(spread(over_torch)["median"] >= target_torch)}
     warn_if_busy(result, load_avg_start, result["load_avg_end"])
     verdict = "no target for this N" if target is None else \
         f"target x{target:g} {'met' if result['target_met'] else 'missed'} (median)"
@@ -229,6 +266,12 @@ def main(argv=None) -> int:
           f"[min {r_spread['min']:.2f}, max {r_spread['max']:.2f}] over {len(ratios)} repeats, {verdict} "
           f"(compile {compile_single:.1f} s single, {compile_sweep:.1f} s sweep; "
           f"load {load_avg_start:.2f} -> {result['load_avg_end']:.2f})")
+    if torch_fps:
+        t = result["torch"]
+        print(f"PyTorch one after another {t['frames_per_s']:.0f} frames/s: sweep / torch "
+              f"x{t['sweep_over_torch']['median']:.2f} [min {t['sweep_over_torch']['min']:.2f}, max "
+              f"{t['sweep_over_torch']['max']:.2f}]" + ("" if t["target"] is None else
+                                                         f", target x{t['target']:g} {'met' if t['target_met'] else 'missed'}"))
     emit(result, args.out)
     return 0
 

@@ -9,7 +9,13 @@
 //
 // Primitives are cached per thread by pass and shape: building one costs tens of microseconds,
 // running a small one about as much.
+//
+// Every operand may carry a leading axis of G configurations (a vmapped sweep: frames
+// [G, n, h, w, c], kernels [G, k, k, c, o], biases [G, o]). The G convolutions then run side by
+// side, one per OpenMP thread, each on one thread (`ForConfigs`).
 
+#include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <map>
 #include <string>
@@ -50,7 +56,9 @@ dnnl::stream& Stream() {
 struct Shapes {
   int64_t n, h, w, c, k, o, ho, wo, stride, pad;
 
-  std::vector<int64_t> Key(int64_t pass) const { return {pass, n, h, w, c, k, o, ho, wo, stride, pad}; }
+  std::vector<int64_t> Key(int64_t pass, bool one_thread) const {
+    return {pass, one_thread, n, h, w, c, k, o, ho, wo, stride, pad};
+  }
   memory::desc X() const { return {{n, c, h, w}, memory::data_type::f32, memory::format_tag::nhwc}; }
   memory::desc Y() const { return {{n, o, ho, wo}, memory::data_type::f32, memory::format_tag::nhwc}; }
   memory::desc Kernel(memory::format_tag tag) const { return {{o, c, k, k}, memory::data_type::f32, tag}; }
@@ -77,10 +85,12 @@ dnnl::convolution_forward::primitive_desc ForwardDesc(const Shapes& s) {
       s.Kernel(memory::format_tag::any), s.Y(), s.Strides(), s.PadL(), s.PadR());
 }
 
-Cached Build(const Shapes& s, int64_t pass) {
+bool Parallel(double macs) { return macs >= g_parallel_macs && g_threads > 1; }
+
+Cached Build(const Shapes& s, int64_t pass, bool one_thread) {
   Cached c;
   // oneDNN splits the work for the thread count it sees when a primitive is made.
-  c.threads = s.Macs() >= g_parallel_macs && g_threads > 0 ? g_threads : 1;
+  c.threads = !one_thread && Parallel(s.Macs()) ? g_threads : 1;
   omp_set_num_threads(c.threads);
   auto hwio = s.Kernel(memory::format_tag::hwio);
   auto fwd = ForwardDesc(s);
@@ -135,20 +145,64 @@ class ThreadsFor {
   int before_;
 };
 
-Cached& Lookup(const Shapes& s, int64_t pass) {
+Cached& Lookup(const Shapes& s, int64_t pass, bool one_thread) {
   thread_local std::map<std::vector<int64_t>, Cached> cache;
-  auto key = s.Key(pass);
+  auto key = s.Key(pass, one_thread);
   auto it = cache.find(key);
-  if (it == cache.end()) it = cache.emplace(key, Build(s, pass)).first;
+  if (it == cache.end()) it = cache.emplace(key, Build(s, pass, one_thread)).first;
   return it->second;
+}
+
+// Threads of oneDNN passes running now. XLA runs independent operations side by side (a
+// layer's input and kernel gradients, say), so two passes may each want every core.
+std::atomic<int> g_busy{0};
+
+// Counts `n` threads as busy for its lifetime.
+class Busy {
+ public:
+  explicit Busy(int n) : n_(n) { g_busy += n; }
+  ~Busy() { g_busy -= n_; }
+
+ private:
+  int n_;
+};
+
+// Runs `run(g, one_thread)` for the G configurations g; returns the first error. One
+// configuration, or configurations each large enough for a team of their own while fewer than
+// the threads, run one after another with the team. Otherwise they run side by side, each on
+// one thread (oneDNN runs a primitive inside a parallel region on its thread), on the threads
+// no other pass holds.
+template <typename F>
+ffi::Error ForConfigs(int64_t configs, double macs, F run) {
+  if (configs == 1 || g_threads <= 1 || (Parallel(macs) && configs < g_threads)) {
+    Busy busy(Parallel(macs) ? g_threads : 1);
+    for (int64_t g = 0; g < configs; ++g) {
+      ffi::Error e = run(g, false);
+      if (e.failure()) return e;
+    }
+    return ffi::Error::Success();
+  }
+  int team = int(std::max<int64_t>(1, std::min<int64_t>(configs, g_threads - g_busy.load())));
+  Busy busy(team);
+  std::vector<ffi::Error> errors(configs, ffi::Error::Success());
+  if (team == 1) {
+    for (int64_t g = 0; g < configs; ++g) errors[g] = run(g, true);
+  } else {
+#pragma omp parallel for num_threads(team) schedule(static)
+    for (int64_t g = 0; g < configs; ++g) errors[g] = run(g, true);
+  }
+  for (auto& e : errors)
+    if (e.failure()) return std::move(e);
+  return ffi::Error::Success();
 }
 
 // Runs one pass. `x` and `y` are the frames and the windows' outputs (each the input or the
 // result, by pass); `kernel` is the kernel (forward, input gradient) or its gradient.
-ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y, float* bias = nullptr) {
+ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y, float* bias = nullptr,
+               bool one_thread = false) {
   ThreadsFor threads;
   try {
-    Cached& c = Lookup(s, pass);
+    Cached& c = Lookup(s, pass, one_thread);
     threads.Use(c.threads);
     auto& stream = Stream();
     memory xm(s.X(), Engine(), x), ym(s.Y(), Engine(), y);
@@ -175,42 +229,80 @@ ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y,
   return ffi::Error::Success();
 }
 
-bool Rank4(ffi::AnyBuffer::Dimensions d) { return d.size() == 4; }
+// The shapes of one configuration's convolution, and the configurations G, from frames x
+// [(G,) n, h, w, c], a kernel [(G,) k, k, c, o] and outputs y [(G,) n, ho, wo, o]; false where
+// the ranks or G disagree.
+bool Unpack(ffi::AnyBuffer::Dimensions xd, ffi::AnyBuffer::Dimensions kd, ffi::AnyBuffer::Dimensions yd,
+            int64_t stride, int64_t pad, Shapes* s, int64_t* configs) {
+  size_t rank = xd.size();
+  if ((rank != 4 && rank != 5) || kd.size() != rank || yd.size() != rank) return false;
+  size_t i = rank - 4;
+  *configs = i ? xd[0] : 1;
+  if (i && (kd[0] != xd[0] || yd[0] != xd[0])) return false;
+  *s = Shapes{xd[i], xd[i + 1], xd[i + 2], xd[i + 3], kd[i], kd[i + 3], yd[i + 1], yd[i + 2], stride, pad};
+  return true;
+}
+
+constexpr const char* kShapeError = "conv: operands of rank 4 ([n, h, w, c]), or all of rank 5 with one leading "
+                                    "axis of configurations, expected";
+
+// Elements of one configuration's frames, kernel and outputs.
+int64_t XSize(const Shapes& s) { return s.n * s.h * s.w * s.c; }
+int64_t KSize(const Shapes& s) { return s.k * s.k * s.c * s.o; }
+int64_t YSize(const Shapes& s) { return s.n * s.ho * s.wo * s.o; }
 
 ffi::Error Forward(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> y,
                    int64_t stride, int64_t pad) {
-  auto xd = x.dimensions(), kd = kernel.dimensions(), yd = y->dimensions();
-  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
-  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
-  return Run(s, kForward, x.typed_data(), kernel.typed_data(), y->typed_data());
+  Shapes s;
+  int64_t g;
+  if (!Unpack(x.dimensions(), kernel.dimensions(), y->dimensions(), stride, pad, &s, &g))
+    return ffi::Error::InvalidArgument(kShapeError);
+  float *xp = x.typed_data(), *kp = kernel.typed_data(), *yp = y->typed_data();
+  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+    return Run(s, kForward, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
+  });
 }
 
-// SELU(forward + bias): x [n, h, w, c], the kernel and the bias [o] give y [n, ho, wo, o].
+// SELU(forward + bias): x [(G,) n, h, w, c], the kernel and the bias [(G,) o] give y [(G,) n, ho, wo, o].
 ffi::Error ForwardSelu(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::Buffer<ffi::F32> bias,
                        ffi::ResultBuffer<ffi::F32> y, int64_t stride, int64_t pad) {
-  auto xd = x.dimensions(), kd = kernel.dimensions(), yd = y->dimensions(), bd = bias.dimensions();
-  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
-  if (bd.size() != 1 || bd[0] != kd[3]) return ffi::Error::InvalidArgument("conv: a bias per output channel expected");
-  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
-  return Run(s, kForwardSelu, x.typed_data(), kernel.typed_data(), y->typed_data(), bias.typed_data());
+  Shapes s;
+  int64_t g;
+  if (!Unpack(x.dimensions(), kernel.dimensions(), y->dimensions(), stride, pad, &s, &g))
+    return ffi::Error::InvalidArgument(kShapeError);
+  auto bd = bias.dimensions();
+  if (bd.size() != x.dimensions().size() - 3 || bd.back() != s.o || (bd.size() == 2 && bd[0] != g))
+    return ffi::Error::InvalidArgument("conv: a bias per output channel (and configuration) expected");
+  float *xp = x.typed_data(), *kp = kernel.typed_data(), *yp = y->typed_data(), *bp = bias.typed_data();
+  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+    return Run(s, kForwardSelu, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), bp + i * s.o, one);
+  });
 }
 
-// The input gradient: dy [n, ho, wo, o] and the kernel give dx [n, h, w, c].
+// The input gradient: dy [(G,) n, ho, wo, o] and the kernel give dx [(G,) n, h, w, c].
 ffi::Error InputGrad(ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> dx,
                      int64_t stride, int64_t pad) {
-  auto yd = dy.dimensions(), kd = kernel.dimensions(), xd = dx->dimensions();
-  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
-  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
-  return Run(s, kInputGrad, dx->typed_data(), kernel.typed_data(), dy.typed_data());
+  Shapes s;
+  int64_t g;
+  if (!Unpack(dx->dimensions(), kernel.dimensions(), dy.dimensions(), stride, pad, &s, &g))
+    return ffi::Error::InvalidArgument(kShapeError);
+  float *xp = dx->typed_data(), *kp = kernel.typed_data(), *yp = dy.typed_data();
+  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+    return Run(s, kInputGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
+  });
 }
 
-// The kernel gradient: x [n, h, w, c] and dy [n, ho, wo, o] give dk [k, k, c, o].
+// The kernel gradient: x [(G,) n, h, w, c] and dy [(G,) n, ho, wo, o] give dk [(G,) k, k, c, o].
 ffi::Error KernelGrad(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::ResultBuffer<ffi::F32> dk,
                       int64_t stride, int64_t pad) {
-  auto xd = x.dimensions(), yd = dy.dimensions(), kd = dk->dimensions();
-  if (!Rank4(xd) || !Rank4(kd) || !Rank4(yd)) return ffi::Error::InvalidArgument("conv: rank-4 operands expected");
-  Shapes s{xd[0], xd[1], xd[2], xd[3], kd[0], kd[3], yd[1], yd[2], stride, pad};
-  return Run(s, kKernelGrad, x.typed_data(), dk->typed_data(), dy.typed_data());
+  Shapes s;
+  int64_t g;
+  if (!Unpack(x.dimensions(), dk->dimensions(), dy.dimensions(), stride, pad, &s, &g))
+    return ffi::Error::InvalidArgument(kShapeError);
+  float *xp = x.typed_data(), *kp = dk->typed_data(), *yp = dy.typed_data();
+  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+    return Run(s, kKernelGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
+  });
 }
 
 // SELU(z + bias) for z [n, h, w, o] and bias [o]: one oneDNN binary addition with SELU's two
@@ -223,19 +315,24 @@ struct CachedSelu {
 
 ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::ResultBuffer<ffi::F32> y) {
   auto zd = z.dimensions(), bd = bias.dimensions();
-  if (!Rank4(zd)) return ffi::Error::InvalidArgument("bias_selu: a rank-4 operand expected");
-  if (bd.size() != 1 || bd[0] != zd[3]) return ffi::Error::InvalidArgument("bias_selu: a bias per channel expected");
+  size_t rank = zd.size();
+  if (rank != 4 && rank != 5) return ffi::Error::InvalidArgument("bias_selu: z [(G,) n, h, w, o] expected");
+  int64_t g = rank == 5 ? zd[0] : 1, o = zd[rank - 1];
+  if (bd.size() != rank - 3 || bd.back() != o || (rank == 5 && bd[0] != g))
+    return ffi::Error::InvalidArgument("bias_selu: a bias per channel (and configuration) expected");
+  int64_t m = zd[rank - 4] * zd[rank - 3] * zd[rank - 2];
   ThreadsFor threads;
   try {
     thread_local std::map<std::vector<int64_t>, CachedSelu> cache;
-    std::vector<int64_t> key{zd[0], zd[1], zd[2], zd[3]};
-    memory::desc zm({zd[0], zd[3], zd[1], zd[2]}, memory::data_type::f32, memory::format_tag::nhwc);
-    memory::desc bm({1, zd[3], 1, 1}, memory::data_type::f32, memory::format_tag::nhwc);
+    std::vector<int64_t> key{g, m, o};
+    // [G, n*h*w, o] plus a bias [G, 1, o] broadcast over the frames and pixels.
+    memory::desc zm({g, m, o}, memory::data_type::f32, memory::format_tag::abc);
+    memory::desc bm({g, 1, o}, memory::data_type::f32, memory::format_tag::abc);
     auto it = cache.find(key);
     if (it == cache.end()) {
       CachedSelu c;
-      // An elementwise pass of n*h*w*o values: worth a team from a tenth of a convolution's work.
-      c.threads = double(zd[0]) * zd[1] * zd[2] * zd[3] * 10 >= g_parallel_macs && g_threads > 0 ? g_threads : 1;
+      // An elementwise pass of G*n*h*w*o values: worth a team from a tenth of a convolution's work.
+      c.threads = Parallel(double(g) * m * o * 10) ? g_threads : 1;
       omp_set_num_threads(c.threads);
       dnnl::post_ops ops;
       ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);

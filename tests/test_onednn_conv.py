@@ -219,3 +219,82 @@ def test_the_fused_selu_layer_equals_its_parts(kind, size, batched):
         want = jax.vmap(grads(theirs), axes)(x, kernel, bias)
     for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
         np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()))
+
+
+def _ffi_calls(jaxpr) -> list:
+    """Every oneDNN custom call of a jaxpr, inside its sub-jaxprs and custom rules too."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "ffi_call":
+            found.append(eqn)
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    found += _ffi_calls(inner)
+    return found
+
+
+@needs_onednn
+@pytest.mark.parametrize("kind", ["conv", "transpose"])
+def test_vmapped_configurations_run_as_one_call_per_pass(kind):
+    """Under `vmap` over configurations with their own kernels, each pass is one custom call
+    whose operands carry the configurations on a leading axis (run side by side in C++), not
+    one call per configuration."""
+    configs = 5
+    x = jnp.zeros((configs, 2, 12 if kind == "conv" else 6, 12 if kind == "conv" else 6, 4))
+    kernel = jnp.zeros((configs, 4, 4, 4, 5))
+    grad = jax.grad(lambda x, k: jnp.sum(_onednn(kind, 2, 1)(x, k)), argnums=(0, 1))
+    calls = _ffi_calls(jax.make_jaxpr(jax.vmap(grad))(x, kernel).jaxpr)
+    assert len(calls) == 3, [e.params.get("call_target_name") for e in calls]  # forward, input and kernel grads
+    assert all(v.aval.shape[0] == configs and v.aval.ndim == 5 for e in calls for v in e.invars)
+
+
+@needs_onednn
+def test_nested_vmaps_of_configurations_equal_xla_one_at_a_time():
+    """Two nested `vmap`s (say seeds within learning rates) merge into one axis of 6
+    configurations; the fused SELU layer and both gradients equal XLA's per configuration."""
+    rng = np.random.default_rng(5)
+    outer, inner, frames, size, c_in, c_out = 2, 3, 2, 12, 4, 6
+    x = jnp.asarray(rng.normal(size=(outer, inner, frames, size, size, c_in)), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(outer, inner, 4, 4, c_in, c_out)) / 8, jnp.float32)
+    bias = jnp.asarray(rng.normal(size=(outer, 1, c_out)), jnp.float32)  # shared by the inner axis
+
+    def loss(layer, x, k, b):
+        return jnp.sum(jnp.sin(layer(x, k, b)))
+
+    mine = lambda x, k, b: conv.conv2d_selu(x, k, b, 2, 1, "onednn")  # noqa: E731
+    theirs = lambda x, k, b: jax.nn.selu(_xla("conv", 2, 1)(x, k) + b)  # noqa: E731
+    grads = lambda layer: jax.value_and_grad(functools.partial(loss, layer), argnums=(0, 1, 2))  # noqa: E731
+    got = jax.jit(jax.vmap(jax.vmap(grads(mine), (0, 0, None)), (0, 0, 0)))(x, kernel, bias[:, 0])
+    for i in range(outer):
+        for j in range(inner):
+            want = grads(theirs)(x[i, j], kernel[i, j], bias[i, 0])
+            g = jax.tree.map(lambda a: a[i, j], got)
+            for gl, wl in zip(jax.tree.leaves(g), jax.tree.leaves(want)):
+                np.testing.assert_allclose(gl, wl, rtol=1e-4, atol=1e-4 * float(jnp.abs(wl).max()))
+
+
+@needs_onednn
+@pytest.mark.parametrize("kind", ["conv", "transpose"])
+def test_the_passes_run_inside_shard_map(kind):
+    """Inside `jax.shard_map` (a sweep sharded over devices or processes) the custom calls'
+    results vary over the mesh axis as their operands do; values and gradients equal XLA's.
+    A mesh of one device checks the types as one of many does."""
+    from jax.sharding import PartitionSpec as P
+
+    rng = np.random.default_rng(6)
+    size = 12 if kind == "conv" else 6
+    x = jnp.asarray(rng.normal(size=(2, 3, size, size, 4)), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(2, 4, 4, 4, 5)), jnp.float32)
+    mesh = jax.make_mesh((1,), ("config",), devices=jax.devices()[:1])
+    x, kernel = jax.device_put((x, kernel), jax.sharding.NamedSharding(mesh, P("config")))
+
+    def per_config(layer):
+        grads = jax.value_and_grad(lambda x, k: jnp.sum(jnp.sin(layer(x, k))), argnums=(0, 1))
+        return jax.shard_map(jax.vmap(grads), mesh=mesh, in_specs=P("config"), out_specs=P("config"))
+
+    got = jax.jit(per_config(_onednn(kind, 2, 1)))(x, kernel)
+    want = per_config(_xla(kind, 2, 1))(x, kernel)
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()))

@@ -70,17 +70,20 @@ MAX_KERNEL_GRAD_TILES = 32
 MAX_UNROLLED_CONFIGS = 8
 
 
-def _leaf(fn=None, *, foldable: bool = True):
+def _leaf(fn=None, *, foldable: bool = True, grouped: bool = False):
     """`fn(a, b, *static)` with a batching rule of its own (see the module docstring): a
     convolution pass whose first argument holds independent frames on its leading axis
     (`foldable`: the pass is frame by frame, so a batch of configurations folds into the
     frames while `b` is shared) and whose second is a kernel (or a tuple of arrays, as a
     kernel and its bias), or for the kernel gradient the other operand of a sum over the
-    frames (not foldable)."""
+    frames (not foldable). A `grouped` pass also takes a leading axis of configurations on `a`
+    and every leaf of `b`, and runs them in one call (oneDNN's passes, side by side)."""
     if fn is None:
-        return partial(_leaf, foldable=foldable)
+        return partial(_leaf, foldable=foldable, grouped=grouped)
 
     def per_config(axis_size, a, b, static):
+        if grouped:
+            return call_grouped(a, b, *static)
         if axis_size <= MAX_UNROLLED_CONFIGS:
             return jnp.stack([call(a[i], jax.tree.map(lambda leaf: leaf[i], b), *static) for i in range(axis_size)])
         return jax.lax.map(lambda ab: call(ab[0], ab[1], *static), (a, b))
@@ -96,15 +99,34 @@ def _leaf(fn=None, *, foldable: bool = True):
             if foldable and a_batched and not any(jax.tree.leaves(b_batched)):
                 y = call(a.reshape((-1,) + a.shape[2:]), b, *static)
                 return y.reshape((axis_size, a.shape[1]) + y.shape[1:]), True
-            a = a if a_batched else jnp.broadcast_to(a, (axis_size,) + a.shape)
-            b = jax.tree.map(lambda leaf, batched: leaf if batched else jnp.broadcast_to(leaf, (axis_size,) + leaf.shape),
-                             b, b_batched)
+            a, b = _broadcast(axis_size, a, b, in_batched)
             return per_config(axis_size, a, b, static), True
+
+        return leaf(a, b)
+
+    def call_grouped(a, b, *static):
+        @jax.custom_batching.custom_vmap
+        def leaf(a, b):
+            return fn(a, b, *static)
+
+        @leaf.def_vmap
+        def rule(axis_size, in_batched, a, b):
+            # A further axis of configurations merges with the first.
+            a, b = _broadcast(axis_size, a, b, in_batched)
+            merge = lambda leaf: leaf.reshape((-1,) + leaf.shape[2:])
+            y = call_grouped(merge(a), jax.tree.map(merge, b), *static)
+            return y.reshape((axis_size, a.shape[1]) + y.shape[1:]), True
 
         return leaf(a, b)
 
     call.__doc__, call.__name__ = fn.__doc__, fn.__name__
     return call
+
+
+def _broadcast(axis_size: int, a, b, in_batched):
+    """`a` and the leaves of `b`, each with a leading axis of `axis_size` (broadcast where not batched)."""
+    grow = lambda leaf, batched: leaf if batched else jnp.broadcast_to(leaf, (axis_size,) + leaf.shape)
+    return grow(a, in_batched[0]), jax.tree.map(grow, b, in_batched[1])
 
 
 def _native(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:

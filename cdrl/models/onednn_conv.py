@@ -107,11 +107,27 @@ def warn_unavailable() -> None:
                   "the XLA formulation runs instead", RuntimeWarning, stacklevel=3)
 
 
-def _call(target: str, shape, *operands: jax.Array, stride: int, padding: int) -> jax.Array:
+def _varying(operands: tuple[jax.Array, ...]) -> tuple[tuple[jax.Array, ...], dict]:
+    """Inside `jax.shard_map` (a sweep over devices or processes), the operands made to vary over
+    every manual mesh axis that one of them varies over, and the result's `manual_axis_type` to
+    match: XLA's own operations have this rule built in, a custom call does not."""
+    types = [jax.typeof(a).mat for a in operands]
+    axes = frozenset().union(*(t.varying for t in types))
+    if not axes:
+        return operands, {}
+    operands = tuple(a if t.varying == axes else jax.lax.pcast(a, tuple(axes - t.varying), to="varying")
+                     for a, t in zip(operands, types))
+    typed = jax.typeof(operands[0])
+    return operands, {"manual_axis_type": typed.mat,
+                      "sharding": jax.sharding.NamedSharding(typed.sharding.mesh, jax.sharding.PartitionSpec())}
+
+
+def _call(target: str, shape, *operands: jax.Array, **attributes: int) -> jax.Array:
     _load()
-    out = jax.ShapeDtypeStruct(tuple(int(d) for d in shape), jnp.float32)
+    operands, manual = _varying(tuple(a.astype(jnp.float32) for a in operands))
+    out = jax.ShapeDtypeStruct(tuple(int(d) for d in shape), jnp.float32, **manual)
     return jax.ffi.ffi_call(target, out, vmap_method="sequential")(
-        *(a.astype(jnp.float32) for a in operands), stride=np.int64(stride), padding=np.int64(padding))
+        *operands, **{name: np.int64(value) for name, value in attributes.items()})
 
 
 def out_size(size: int, k: int, stride: int, padding: int) -> int:
@@ -119,36 +135,37 @@ def out_size(size: int, k: int, stride: int, padding: int) -> int:
 
 
 def forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
-    """The strided convolution of frames x [n, h, w, c] with a kernel [k, k, c, o]."""
-    n, h, w, _ = x.shape
-    k, _, _, o = kernel.shape
-    shape = (n, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
+    """The strided convolution of frames x [(G,) n, h, w, c] with a kernel [(G,) k, k, c, o]. A
+    leading axis G holds configurations, each with its frames and kernel (a vmapped sweep);
+    their convolutions run side by side."""
+    *lead, h, w, _ = x.shape
+    k, _, _, o = kernel.shape[-4:]
+    shape = (*lead, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
     return _call("cdrl_onednn_conv_forward", shape, x, kernel, stride=stride, padding=padding)
 
 
 def forward_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int) -> jax.Array:
-    """SELU(forward(x, kernel) + bias), the bias and SELU inside oneDNN's convolution."""
-    n, h, w, _ = x.shape
-    k, _, _, o = kernel.shape
-    shape = (n, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
+    """SELU(forward(x, kernel) + bias), the bias [(G,) o] and SELU inside oneDNN's convolution."""
+    *lead, h, w, _ = x.shape
+    k, _, _, o = kernel.shape[-4:]
+    shape = (*lead, out_size(h, k, stride, padding), out_size(w, k, stride, padding), o)
     return _call("cdrl_onednn_conv_forward_selu", shape, x, kernel, bias, stride=stride, padding=padding)
 
 
 def bias_selu(z: jax.Array, bias: jax.Array) -> jax.Array:
-    """SELU(z + bias) for z [n, h, w, o] in one vectorised oneDNN pass."""
-    _load()
-    out = jax.ShapeDtypeStruct(z.shape, jnp.float32)
-    return jax.ffi.ffi_call("cdrl_onednn_bias_selu", out, vmap_method="sequential")(
-        z.astype(jnp.float32), bias.astype(jnp.float32))
+    """SELU(z + bias) for z [(G,) n, h, w, o] and a bias [(G,) o] in one vectorised oneDNN pass."""
+    return _call("cdrl_onednn_bias_selu", z.shape, z, bias)
 
 
 def input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, size: tuple[int, int]) -> jax.Array:
-    """d<forward(x, kernel), dy>/dx for frames x of spatial `size` (h, w)."""
-    c = kernel.shape[2]
-    return _call("cdrl_onednn_conv_input_grad", (dy.shape[0], *size, c), dy, kernel, stride=stride, padding=padding)
+    """d<forward(x, kernel), dy>/dx for frames x of spatial `size` (h, w); dy [(G,) n, ho, wo, o]."""
+    c = kernel.shape[-2]
+    return _call("cdrl_onednn_conv_input_grad", (*dy.shape[:-3], *size, c), dy, kernel, stride=stride,
+                 padding=padding)
 
 
 def kernel_grad(x: jax.Array, dy: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
-    """d<forward(x, kernel), dy>/d kernel for a k x k kernel, summed over the frames."""
-    return _call("cdrl_onednn_conv_kernel_grad", (k, k, x.shape[-1], dy.shape[-1]), x, dy, stride=stride,
-                 padding=padding)
+    """d<forward(x, kernel), dy>/d kernel for a k x k kernel, summed over the frames
+    (per configuration where x [G, n, h, w, c] and dy carry a leading axis G)."""
+    return _call("cdrl_onednn_conv_kernel_grad", (*x.shape[:-4], k, k, x.shape[-1], dy.shape[-1]), x, dy,
+                 stride=stride, padding=padding)

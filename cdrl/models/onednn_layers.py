@@ -22,17 +22,17 @@ from cdrl.models.conv import (BACKEND_LAYERS, BackendLayers, _conv_pair, _flip_i
                               _xla_input_grad)
 
 
-@_leaf
+@_leaf(grouped=True)
 def _onednn_forward(x: jax.Array, kernel: jax.Array, stride: int, padding: int) -> jax.Array:
     return onednn_conv.forward(x, kernel, stride, padding)
 
 
-@_leaf
+@_leaf(grouped=True)
 def _onednn_input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, h: int, w: int) -> jax.Array:
     return onednn_conv.input_grad(dy, kernel, stride, padding, (h, w))
 
 
-@_leaf(foldable=False)
+@_leaf(foldable=False, grouped=True)
 def _onednn_kernel_grad(x: jax.Array, dy: jax.Array, k: int, stride: int, padding: int) -> jax.Array:
     return onednn_conv.kernel_grad(x, dy, k, stride, padding)
 
@@ -58,7 +58,7 @@ def _selu_grad(y: jax.Array, ct: jax.Array) -> jax.Array:
     return ct * jnp.where(y > 0, _SELU_SCALE, y + _SELU_SCALE * _SELU_ALPHA)
 
 
-@_leaf
+@_leaf(grouped=True)
 def _onednn_forward_selu(x: jax.Array, kernel_bias, stride: int, padding: int) -> jax.Array:
     return onednn_conv.forward_selu(x, kernel_bias[0], kernel_bias[1], stride, padding)
 
@@ -83,7 +83,7 @@ def _strided_selu_bwd(stride, padding, res, ct):
 strided_selu.defvjp(_strided_selu_fwd, _strided_selu_bwd)
 
 
-@_leaf
+@_leaf(grouped=True)
 def _onednn_bias_selu(z: jax.Array, bias: jax.Array) -> jax.Array:
     return onednn_conv.bias_selu(z, bias)
 
