@@ -12,13 +12,14 @@
 //
 // Every operand may carry a leading axis of G configurations (a vmapped sweep: frames
 // [G, n, h, w, c], kernels [G, k, k, c, o], biases [G, o]). The G convolutions then run side by
-// side, one per OpenMP thread, each on one thread (`ForConfigs`).
+// side on XLA's own CPU threads, each on one thread (`ForConfigs`).
 
 #include <algorithm>
 #include <atomic>
 #include <cstdint>
 #include <map>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <omp.h>
@@ -167,13 +168,22 @@ class Busy {
   int n_;
 };
 
+// The configurations of one call, claimed one at a time by the threads that run them.
+struct Claims {
+  explicit Claims(int64_t n) : configs(n), errors(n, ffi::Error::Success()) {}
+  const int64_t configs;
+  std::atomic<int64_t> next{0}, done{0};
+  std::vector<ffi::Error> errors;
+};
+
 // Runs `run(g, one_thread)` for the G configurations g; returns the first error. One
-// configuration, or configurations each large enough for a team of their own while fewer than
-// the threads, run one after another with the team. Otherwise they run side by side, each on
-// one thread (oneDNN runs a primitive inside a parallel region on its thread), on the threads
-// no other pass holds.
+// configuration, or configurations each large enough for an OpenMP team of their own while
+// fewer than the threads, run one after another with the team. Otherwise they run side by
+// side, each on one thread: the calling thread and tasks on XLA's thread pool claim them one
+// at a time (a task that starts after the last claim does nothing, so the call never waits
+// for a thread busy elsewhere), on as many threads as no other pass holds.
 template <typename F>
-ffi::Error ForConfigs(int64_t configs, double macs, F run) {
+ffi::Error ForConfigs(ffi::ThreadPool pool, int64_t configs, double macs, F run) {
   if (configs == 1 || g_threads <= 1 || (Parallel(macs) && configs < g_threads)) {
     Busy busy(Parallel(macs) ? g_threads : 1);
     for (int64_t g = 0; g < configs; ++g) {
@@ -182,16 +192,17 @@ ffi::Error ForConfigs(int64_t configs, double macs, F run) {
     }
     return ffi::Error::Success();
   }
-  int team = int(std::max<int64_t>(1, std::min<int64_t>(configs, g_threads - g_busy.load())));
+  int64_t threads = std::min<int64_t>({configs, g_threads, pool.num_threads() + 1});
+  int team = int(std::max<int64_t>(1, std::min<int64_t>(threads, g_threads - g_busy.load())));
   Busy busy(team);
-  std::vector<ffi::Error> errors(configs, ffi::Error::Success());
-  if (team == 1) {
-    for (int64_t g = 0; g < configs; ++g) errors[g] = run(g, true);
-  } else {
-#pragma omp parallel for num_threads(team) schedule(static)
-    for (int64_t g = 0; g < configs; ++g) errors[g] = run(g, true);
-  }
-  for (auto& e : errors)
+  auto claims = std::make_shared<Claims>(configs);
+  auto work = [claims, run]() {
+    for (int64_t g; (g = claims->next++) < claims->configs; ++claims->done) claims->errors[g] = run(g, true);
+  };
+  for (int i = 1; i < team; ++i) pool.Schedule([work] { work(); });
+  work();
+  while (claims->done.load() < configs) std::this_thread::yield();
+  for (auto& e : claims->errors)
     if (e.failure()) return std::move(e);
   return ffi::Error::Success();
 }
@@ -251,20 +262,20 @@ int64_t XSize(const Shapes& s) { return s.n * s.h * s.w * s.c; }
 int64_t KSize(const Shapes& s) { return s.k * s.k * s.c * s.o; }
 int64_t YSize(const Shapes& s) { return s.n * s.ho * s.wo * s.o; }
 
-ffi::Error Forward(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> y,
+ffi::Error Forward(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> y,
                    int64_t stride, int64_t pad) {
   Shapes s;
   int64_t g;
   if (!Unpack(x.dimensions(), kernel.dimensions(), y->dimensions(), stride, pad, &s, &g))
     return ffi::Error::InvalidArgument(kShapeError);
   float *xp = x.typed_data(), *kp = kernel.typed_data(), *yp = y->typed_data();
-  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
     return Run(s, kForward, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
   });
 }
 
 // SELU(forward + bias): x [(G,) n, h, w, c], the kernel and the bias [(G,) o] give y [(G,) n, ho, wo, o].
-ffi::Error ForwardSelu(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::Buffer<ffi::F32> bias,
+ffi::Error ForwardSelu(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::Buffer<ffi::F32> bias,
                        ffi::ResultBuffer<ffi::F32> y, int64_t stride, int64_t pad) {
   Shapes s;
   int64_t g;
@@ -274,33 +285,33 @@ ffi::Error ForwardSelu(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ff
   if (bd.size() != x.dimensions().size() - 3 || bd.back() != s.o || (bd.size() == 2 && bd[0] != g))
     return ffi::Error::InvalidArgument("conv: a bias per output channel (and configuration) expected");
   float *xp = x.typed_data(), *kp = kernel.typed_data(), *yp = y->typed_data(), *bp = bias.typed_data();
-  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
     return Run(s, kForwardSelu, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), bp + i * s.o, one);
   });
 }
 
 // The input gradient: dy [(G,) n, ho, wo, o] and the kernel give dx [(G,) n, h, w, c].
-ffi::Error InputGrad(ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> dx,
+ffi::Error InputGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> dx,
                      int64_t stride, int64_t pad) {
   Shapes s;
   int64_t g;
   if (!Unpack(dx->dimensions(), kernel.dimensions(), dy.dimensions(), stride, pad, &s, &g))
     return ffi::Error::InvalidArgument(kShapeError);
   float *xp = dx->typed_data(), *kp = kernel.typed_data(), *yp = dy.typed_data();
-  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
     return Run(s, kInputGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
   });
 }
 
 // The kernel gradient: x [(G,) n, h, w, c] and dy [(G,) n, ho, wo, o] give dk [(G,) k, k, c, o].
-ffi::Error KernelGrad(ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::ResultBuffer<ffi::F32> dk,
+ffi::Error KernelGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::ResultBuffer<ffi::F32> dk,
                       int64_t stride, int64_t pad) {
   Shapes s;
   int64_t g;
   if (!Unpack(x.dimensions(), dk->dimensions(), dy.dimensions(), stride, pad, &s, &g))
     return ffi::Error::InvalidArgument(kShapeError);
   float *xp = x.typed_data(), *kp = dk->typed_data(), *yp = dy.typed_data();
-  return ForConfigs(g, s.Macs(), [&](int64_t i, bool one) {
+  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
     return Run(s, kKernelGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
   });
 }
@@ -355,9 +366,9 @@ ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::Re
 
 }  // namespace
 
-#define CDRL_CONV_BINDING()                                                                   \
-  ffi::Ffi::Bind().Arg<ffi::Buffer<ffi::F32>>().Arg<ffi::Buffer<ffi::F32>>().Ret<ffi::Buffer<ffi::F32>>() \
-      .Attr<int64_t>("stride").Attr<int64_t>("padding")
+#define CDRL_CONV_BINDING()                                                                        \
+  ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::Buffer<ffi::F32>>().Arg<ffi::Buffer<ffi::F32>>()  \
+      .Ret<ffi::Buffer<ffi::F32>>().Attr<int64_t>("stride").Attr<int64_t>("padding")
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForward, Forward, CDRL_CONV_BINDING());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvInputGrad, InputGrad, CDRL_CONV_BINDING());
@@ -368,6 +379,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlBiasSelu, BiasSelu,
                                   .Ret<ffi::Buffer<ffi::F32>>());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForwardSelu, ForwardSelu,
                               ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()

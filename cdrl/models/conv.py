@@ -24,7 +24,9 @@ Under `vmap` (a sweep's configurations) XLA's own batching rule turns a convolut
 kernel is batched into a grouped convolution, which its CPU backend runs group by group.
 Each pass here is a leaf with its own rule (`_leaf`): with only the frames batched, the
 configuration axis folds into the frames; with the kernels batched too, one convolution per
-configuration, unrolled for a few and by `lax.map` for many. The passes are only ever
+configuration, unrolled for a few and by `lax.map` for many. oneDNN's passes instead take the
+configurations on a leading axis in one custom call, which runs them side by side on XLA's
+CPU threads (nested `vmap`s merge into that one axis). The passes are only ever
 differentiated through their `custom_vjp`, so the leaves need no derivative of their own.
 
 The `onednn` backend (`--conv onednn`, `ArchConfig.conv`) runs the three passes as XLA custom
