@@ -39,7 +39,9 @@ double g_parallel_macs = 1e7;
 
 // kForwardSelu: the forward with the bias added and SELU applied inside the convolution
 // (oneDNN post-ops: ELU with SELU's alpha, then a linear scale by SELU's lambda).
-enum Pass : int64_t { kForward = 0, kInputGrad = 1, kKernelGrad = 2, kForwardSelu = 3 };
+// kTransposedSelu: the input gradient as a transposed convolution's forward (oneDNN's
+// deconvolution) with a bias [c] and SELU's post-ops.
+enum Pass : int64_t { kForward = 0, kInputGrad = 1, kKernelGrad = 2, kForwardSelu = 3, kTransposedSelu = 4 };
 constexpr float kSeluAlpha = 1.6732632423543772f;
 constexpr float kSeluScale = 1.0507009873554805f;
 
@@ -64,6 +66,15 @@ struct Shapes {
   memory::desc Y() const { return {{n, o, ho, wo}, memory::data_type::f32, memory::format_tag::nhwc}; }
   memory::desc Kernel(memory::format_tag tag) const { return {{o, c, k, k}, memory::data_type::f32, tag}; }
   memory::desc Bias() const { return {{o}, memory::data_type::f32, memory::format_tag::x}; }
+  // The kernel [k, k, c, o] (HWIO of the strided convolution) read as a deconvolution's
+  // weights, whose output channels are c and input channels o.
+  memory::desc Deconv() const { return {{c, o, k, k}, memory::data_type::f32, {o, 1, k * c * o, c * o}}; }
+  memory::desc DeconvAny() const { return {{c, o, k, k}, memory::data_type::f32, memory::format_tag::any}; }
+  memory::desc DeconvBias() const { return {{c}, memory::data_type::f32, memory::format_tag::x}; }
+  // The kernel as the user holds it, for `pass`.
+  memory::desc UserKernel(int64_t pass) const {
+    return pass == 4 /* kTransposedSelu */ ? Deconv() : Kernel(memory::format_tag::hwio);
+  }
   memory::dims Strides() const { return {stride, stride}; }
   memory::dims PadL() const { return {pad, pad}; }
   // The trailing padding that makes ho x wo windows end where the last one ends.
@@ -93,7 +104,7 @@ Cached Build(const Shapes& s, int64_t pass, bool one_thread) {
   // oneDNN splits the work for the thread count it sees when a primitive is made.
   c.threads = !one_thread && Parallel(s.Macs()) ? g_threads : 1;
   omp_set_num_threads(c.threads);
-  auto hwio = s.Kernel(memory::format_tag::hwio);
+  auto hwio = s.UserKernel(pass);
   auto fwd = ForwardDesc(s);
   if (pass == kForward) {
     c.conv = dnnl::convolution_forward(fwd);
@@ -108,6 +119,17 @@ Cached Build(const Shapes& s, int64_t pass, bool one_thread) {
         Engine(), dnnl::prop_kind::forward_training, dnnl::algorithm::convolution_direct, s.X(),
         s.Kernel(memory::format_tag::any), s.Bias(), s.Y(), s.Strides(), s.PadL(), s.PadR(), attr);
     c.conv = dnnl::convolution_forward(pd);
+    c.kernel_desc = pd.weights_desc();
+  } else if (pass == kTransposedSelu) {
+    dnnl::post_ops ops;
+    ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
+    ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
+    dnnl::primitive_attr attr;
+    attr.set_post_ops(ops);
+    dnnl::deconvolution_forward::primitive_desc pd(
+        Engine(), dnnl::prop_kind::forward_training, dnnl::algorithm::deconvolution_direct, s.Y(), s.DeconvAny(),
+        s.DeconvBias(), s.X(), s.Strides(), s.PadL(), s.PadR(), attr);
+    c.conv = dnnl::deconvolution_forward(pd);
     c.kernel_desc = pd.weights_desc();
   } else if (pass == kInputGrad) {
     dnnl::convolution_backward_data::primitive_desc pd(
@@ -217,7 +239,7 @@ ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y,
     threads.Use(c.threads);
     auto& stream = Stream();
     memory xm(s.X(), Engine(), x), ym(s.Y(), Engine(), y);
-    memory user(s.Kernel(memory::format_tag::hwio), Engine(), kernel);
+    memory user(s.UserKernel(pass), Engine(), kernel);
     memory km = c.reorder ? c.kernel_buf : user;
     if (c.reorder && pass != kKernelGrad) {
       c.to_onednn.execute(stream, user, km);
@@ -227,6 +249,9 @@ ffi::Error Run(const Shapes& s, int64_t pass, float* x, float* kernel, float* y,
     } else if (pass == kForwardSelu) {
       memory bm(s.Bias(), Engine(), bias);
       c.conv.execute(stream, {{DNNL_ARG_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_BIAS, bm}, {DNNL_ARG_DST, ym}});
+    } else if (pass == kTransposedSelu) {
+      memory bm(s.DeconvBias(), Engine(), bias);
+      c.conv.execute(stream, {{DNNL_ARG_SRC, ym}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_BIAS, bm}, {DNNL_ARG_DST, xm}});
     } else if (pass == kInputGrad) {
       c.conv.execute(stream, {{DNNL_ARG_DIFF_SRC, xm}, {DNNL_ARG_WEIGHTS, km}, {DNNL_ARG_DIFF_DST, ym}});
     } else {
@@ -300,6 +325,23 @@ ffi::Error InputGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> dy, ffi::Buffer
   float *xp = dx->typed_data(), *kp = kernel.typed_data(), *yp = dy.typed_data();
   return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
     return Run(s, kInputGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
+  });
+}
+
+// SELU(input gradient + bias) as a transposed convolution's forward: dy [(G,) n, ho, wo, o], the
+// kernel [(G,) k, k, c, o] of the strided convolution and a bias [(G,) c] give dx [(G,) n, h, w, c].
+ffi::Error TransposedSelu(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel,
+                          ffi::Buffer<ffi::F32> bias, ffi::ResultBuffer<ffi::F32> dx, int64_t stride, int64_t pad) {
+  Shapes s;
+  int64_t g;
+  if (!Unpack(dx->dimensions(), kernel.dimensions(), dy.dimensions(), stride, pad, &s, &g))
+    return ffi::Error::InvalidArgument(kShapeError);
+  auto bd = bias.dimensions();
+  if (bd.size() != dy.dimensions().size() - 3 || bd.back() != s.c || (bd.size() == 2 && bd[0] != g))
+    return ffi::Error::InvalidArgument("conv: a bias per output channel (and configuration) expected");
+  float *xp = dx->typed_data(), *kp = kernel.typed_data(), *yp = dy.typed_data(), *bp = bias.typed_data();
+  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
+    return Run(s, kTransposedSelu, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), bp + i * s.c, one);
   });
 }
 
@@ -387,6 +429,15 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForwardSelu, ForwardSelu,
                                   .Attr<int64_t>("stride")
                                   .Attr<int64_t>("padding"));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvKernelGrad, KernelGrad, CDRL_CONV_BINDING());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvTransposedSelu, TransposedSelu,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::F32>>()
+                                  .Attr<int64_t>("stride")
+                                  .Attr<int64_t>("padding"));
 
 // The OpenMP threads of a large pass (XLA's intra-op thread count), and the multiply-adds from
 // which a pass is large; for the primitives made from now on.

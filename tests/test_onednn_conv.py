@@ -187,16 +187,17 @@ def test_a_run_records_its_convolution_backend():
 
 @needs_onednn
 # sizes 2 and 1: a window that covers the whole input, a transposed layer from one pixel
-@pytest.mark.parametrize("kind,size", [("conv", 12), ("conv", 76), ("conv", 2), ("transpose", 6), ("transpose", 20),
-                                       ("transpose", 1)])
+@pytest.mark.parametrize("kind,size,padding", [("conv", 12, 1), ("conv", 76, 1), ("conv", 2, 1), ("conv", 38, 2),
+                                               ("transpose", 6, 1), ("transpose", 20, 1), ("transpose", 1, 1),
+                                               ("transpose", 20, 2)])
 @pytest.mark.parametrize("batched", ["none", "frames", "all"])
-def test_the_fused_selu_layer_equals_its_parts(kind, size, batched):
+def test_the_fused_selu_layer_equals_its_parts(kind, size, padding, batched):
     """SELU(convolution + bias) on oneDNN (the bias and SELU inside the convolution, SELU's
     derivative read off the output) equals XLA's layer written out, in values and in the
     gradients of the input, kernel and bias; also under `vmap` over frames alone or over
     frames, kernels and biases."""
     rng = np.random.default_rng(4)
-    c_in, c_out, k, stride, padding = 4, 6, 4, 2, 1
+    c_in, c_out, k, stride = 4, 6, 4, 2
     configs = 2
     shape = (configs, 3, size, size, c_in) if batched != "none" else (3, size, size, c_in)
     x = jnp.asarray(rng.normal(size=shape), jnp.float32)

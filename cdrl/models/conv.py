@@ -365,9 +365,8 @@ def conv2d_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, p
 def conv_transpose_selu(x: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
                         backend: str = "auto") -> jax.Array:
     """SELU(conv_transpose(x, kernel) + bias). On oneDNN, for a layer of more than one input
-    pixel: the transposed convolution, then the bias and SELU in one oneDNN pass (its
-    input-gradient primitive, the transposed forward, takes no post-ops); the backward reads
-    SELU's derivative off the output."""
+    pixel: one deconvolution with the bias and SELU as post-ops; the backward reads SELU's
+    derivative off the output."""
     if formulation(backend) == "onednn" and x.shape[1] * x.shape[2] > 1 and padding <= kernel.shape[0] - 1:
         return BACKEND_LAYERS["onednn"].transposed_selu(x, kernel, bias, stride, padding)
     return jax.nn.selu(conv_transpose(x, kernel, stride, padding, backend) + bias)

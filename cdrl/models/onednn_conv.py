@@ -34,7 +34,7 @@ import numpy as np
 
 _TARGETS = {"cdrl_onednn_conv_forward": "CdrlConvForward", "cdrl_onednn_conv_input_grad": "CdrlConvInputGrad",
             "cdrl_onednn_conv_kernel_grad": "CdrlConvKernelGrad", "cdrl_onednn_conv_forward_selu": "CdrlConvForwardSelu",
-            "cdrl_onednn_bias_selu": "CdrlBiasSelu"}
+            "cdrl_onednn_bias_selu": "CdrlBiasSelu", "cdrl_onednn_conv_transposed_selu": "CdrlConvTransposedSelu"}
 _RUNTIME = "onednn-cpu-gomp"
 # A pass of fewer multiply-adds runs on one thread (CDRL_ONEDNN_PARALLEL_MACS overrides it).
 PARALLEL_MACS = 1e7  # the wheel whose libdnnl.so.3 the extension links to
@@ -161,6 +161,15 @@ def input_grad(dy: jax.Array, kernel: jax.Array, stride: int, padding: int, size
     """d<forward(x, kernel), dy>/dx for frames x of spatial `size` (h, w); dy [(G,) n, ho, wo, o]."""
     c = kernel.shape[-2]
     return _call("cdrl_onednn_conv_input_grad", (*dy.shape[:-3], *size, c), dy, kernel, stride=stride,
+                 padding=padding)
+
+
+def input_grad_selu(dy: jax.Array, kernel: jax.Array, bias: jax.Array, stride: int, padding: int,
+                    size: tuple[int, int]) -> jax.Array:
+    """SELU(input_grad(dy, kernel, ...) + bias), the bias [(G,) c] and SELU inside oneDNN's
+    deconvolution: a transposed convolution's SELU layer in one pass."""
+    c = kernel.shape[-2]
+    return _call("cdrl_onednn_conv_transposed_selu", (*dy.shape[:-3], *size, c), dy, kernel, bias, stride=stride,
                  padding=padding)
 
 
