@@ -97,6 +97,16 @@ dnnl::convolution_forward::primitive_desc ForwardDesc(const Shapes& s) {
       s.Kernel(memory::format_tag::any), s.Y(), s.Strides(), s.PadL(), s.PadR());
 }
 
+// SELU as a primitive's post-ops: ELU with SELU's alpha, then a linear scale by its lambda.
+dnnl::primitive_attr SeluAttr() {
+  dnnl::post_ops ops;
+  ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
+  ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
+  dnnl::primitive_attr attr;
+  attr.set_post_ops(ops);
+  return attr;
+}
+
 bool Parallel(double macs) { return macs >= g_parallel_macs && g_threads > 1; }
 
 Cached Build(const Shapes& s, int64_t pass, bool one_thread) {
@@ -110,22 +120,14 @@ Cached Build(const Shapes& s, int64_t pass, bool one_thread) {
     c.conv = dnnl::convolution_forward(fwd);
     c.kernel_desc = fwd.weights_desc();
   } else if (pass == kForwardSelu) {
-    dnnl::post_ops ops;
-    ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
-    ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
-    dnnl::primitive_attr attr;
-    attr.set_post_ops(ops);
+    dnnl::primitive_attr attr = SeluAttr();
     dnnl::convolution_forward::primitive_desc pd(
         Engine(), dnnl::prop_kind::forward_training, dnnl::algorithm::convolution_direct, s.X(),
         s.Kernel(memory::format_tag::any), s.Bias(), s.Y(), s.Strides(), s.PadL(), s.PadR(), attr);
     c.conv = dnnl::convolution_forward(pd);
     c.kernel_desc = pd.weights_desc();
   } else if (pass == kTransposedSelu) {
-    dnnl::post_ops ops;
-    ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
-    ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
-    dnnl::primitive_attr attr;
-    attr.set_post_ops(ops);
+    dnnl::primitive_attr attr = SeluAttr();
     dnnl::deconvolution_forward::primitive_desc pd(
         Engine(), dnnl::prop_kind::forward_training, dnnl::algorithm::deconvolution_direct, s.Y(), s.DeconvAny(),
         s.DeconvBias(), s.X(), s.Strides(), s.PadL(), s.PadR(), attr);
@@ -387,11 +389,7 @@ ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::Re
       // An elementwise pass of G*n*h*w*o values: worth a team from a tenth of a convolution's work.
       c.threads = Parallel(double(g) * m * o * 10) ? g_threads : 1;
       omp_set_num_threads(c.threads);
-      dnnl::post_ops ops;
-      ops.append_eltwise(dnnl::algorithm::eltwise_elu, kSeluAlpha, 0.f);
-      ops.append_eltwise(dnnl::algorithm::eltwise_linear, kSeluScale, 0.f);
-      dnnl::primitive_attr attr;
-      attr.set_post_ops(ops);
+      dnnl::primitive_attr attr = SeluAttr();
       c.add = dnnl::binary(dnnl::binary::primitive_desc(Engine(), dnnl::algorithm::binary_add, zm, bm, zm, attr));
       it = cache.emplace(key, std::move(c)).first;
     }
@@ -412,6 +410,11 @@ ffi::Error BiasSelu(ffi::Buffer<ffi::F32> z, ffi::Buffer<ffi::F32> bias, ffi::Re
   ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::Buffer<ffi::F32>>().Arg<ffi::Buffer<ffi::F32>>()  \
       .Ret<ffi::Buffer<ffi::F32>>().Attr<int64_t>("stride").Attr<int64_t>("padding")
 
+// A pass with a bias too: frames, kernel, bias -> result.
+#define CDRL_CONV_BIAS_BINDING()                                                                   \
+  ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::Buffer<ffi::F32>>().Arg<ffi::Buffer<ffi::F32>>()  \
+      .Arg<ffi::Buffer<ffi::F32>>().Ret<ffi::Buffer<ffi::F32>>().Attr<int64_t>("stride").Attr<int64_t>("padding")
+
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForward, Forward, CDRL_CONV_BINDING());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvInputGrad, InputGrad, CDRL_CONV_BINDING());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlBiasSelu, BiasSelu,
@@ -419,25 +422,9 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlBiasSelu, BiasSelu,
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Ret<ffi::Buffer<ffi::F32>>());
-XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForwardSelu, ForwardSelu,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Ret<ffi::Buffer<ffi::F32>>()
-                                  .Attr<int64_t>("stride")
-                                  .Attr<int64_t>("padding"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvForwardSelu, ForwardSelu, CDRL_CONV_BIAS_BINDING());
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvKernelGrad, KernelGrad, CDRL_CONV_BINDING());
-XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvTransposedSelu, TransposedSelu,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Ret<ffi::Buffer<ffi::F32>>()
-                                  .Attr<int64_t>("stride")
-                                  .Attr<int64_t>("padding"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdrlConvTransposedSelu, TransposedSelu, CDRL_CONV_BIAS_BINDING());
 
 // The OpenMP threads of a large pass (XLA's intra-op thread count), and the multiply-adds from
 // which a pass is large; for the primitives made from now on.

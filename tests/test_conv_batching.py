@@ -12,6 +12,7 @@ from cdrl.models import TINY, conv, make_variant
 from cdrl.runs.config import RunConfig
 from cdrl.runs.sweep import Grid, init_sweep, sweep_step_fn
 from cdrl.data.stream import Chunk
+from jaxprs import equations
 
 CONFIGS = 3
 
@@ -43,20 +44,6 @@ def test_each_pass_under_vmap_equals_the_pass_per_configuration(kind, c_in, shar
         np.testing.assert_allclose(dk[i], dk_i, rtol=1e-4, atol=1e-4)
 
 
-def _convolutions(jaxpr) -> list:
-    """Every convolution of a jaxpr, inside its sub-jaxprs (scans, conds, custom rules) too."""
-    found = []
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "conv_general_dilated":
-            found.append(eqn)
-        for value in eqn.params.values():
-            for sub in value if isinstance(value, (tuple, list)) else (value,):
-                inner = getattr(sub, "jaxpr", sub)  # a ClosedJaxpr's Jaxpr, or a Jaxpr
-                if hasattr(inner, "eqns"):
-                    found += _convolutions(inner)
-    return found
-
-
 def test_a_vmapped_train_step_holds_no_grouped_convolution():
     variant = make_variant("main", TINY)
     cfgs = Grid(lr=(0.5, 1.0)).configs(RunConfig(variant="main", preset="tiny", batch=2, unroll=3, recipe="tuned"))
@@ -67,7 +54,7 @@ def test_a_vmapped_train_step_holds_no_grouped_convolution():
                    reward=jnp.zeros((len(cfgs), t, b)), is_first=jnp.zeros((len(cfgs), t, b), bool))
     alive = jnp.ones((len(cfgs),), bool)
     jaxpr = jax.make_jaxpr(functools.partial(sweep_step_fn, variant))(states, hps, alive, chunks).jaxpr
-    convs = _convolutions(jaxpr)
+    convs = equations(jaxpr, "conv_general_dilated")
     assert convs, "the checker found no convolution at all"
     grouped = [e for e in convs if e.params["feature_group_count"] > 1 or e.params["batch_group_count"] > 1]
     assert not grouped, f"{len(grouped)} of {len(convs)} convolutions are grouped"

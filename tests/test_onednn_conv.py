@@ -14,6 +14,7 @@ import pytest
 
 from cdrl.models import conv, onednn_conv
 from cdrl.models.arch import preset
+from jaxprs import equations
 
 needs_onednn = pytest.mark.skipif(not onednn_conv.available(), reason=str(onednn_conv.unavailable_reason()))
 
@@ -222,20 +223,6 @@ def test_the_fused_selu_layer_equals_its_parts(kind, size, padding, batched):
         np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()))
 
 
-def _ffi_calls(jaxpr) -> list:
-    """Every oneDNN custom call of a jaxpr, inside its sub-jaxprs and custom rules too."""
-    found = []
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "ffi_call":
-            found.append(eqn)
-        for value in eqn.params.values():
-            for sub in value if isinstance(value, (tuple, list)) else (value,):
-                inner = getattr(sub, "jaxpr", sub)
-                if hasattr(inner, "eqns"):
-                    found += _ffi_calls(inner)
-    return found
-
-
 @needs_onednn
 @pytest.mark.parametrize("kind", ["conv", "transpose"])
 def test_vmapped_configurations_run_as_one_call_per_pass(kind):
@@ -246,7 +233,7 @@ def test_vmapped_configurations_run_as_one_call_per_pass(kind):
     x = jnp.zeros((configs, 2, 12 if kind == "conv" else 6, 12 if kind == "conv" else 6, 4))
     kernel = jnp.zeros((configs, 4, 4, 4, 5))
     grad = jax.grad(lambda x, k: jnp.sum(_onednn(kind, 2, 1)(x, k)), argnums=(0, 1))
-    calls = _ffi_calls(jax.make_jaxpr(jax.vmap(grad))(x, kernel).jaxpr)
+    calls = equations(jax.make_jaxpr(jax.vmap(grad))(x, kernel).jaxpr, "ffi_call")
     assert len(calls) == 3, [e.params.get("call_target_name") for e in calls]  # forward, input and kernel grads
     assert all(v.aval.shape[0] == configs and v.aval.ndim == 5 for e in calls for v in e.invars)
 
