@@ -286,3 +286,34 @@ def test_the_passes_run_inside_shard_map(kind):
     want = per_config(_xla(kind, 2, 1))(x, kernel)
     for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
         np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()))
+
+
+_THREADED = '''
+import jax, jax.numpy as jnp, numpy as np
+from cdrl.models import conv
+rng = np.random.default_rng(7)
+for configs in (2, 6):  # fewer configurations than threads: one after another with a team; more: side by side
+    x = jnp.asarray(rng.normal(size=(configs, 3, 12, 12, 4)), jnp.float32)
+    k = jnp.asarray(rng.normal(size=(configs, 4, 4, 4, 5)) / 8, jnp.float32)
+    b = jnp.asarray(rng.normal(size=(configs, 5)), jnp.float32)
+    def grads(backend):
+        f = lambda x, k, b: jnp.sum(jnp.sin(conv.conv_transpose_selu(conv.conv2d_selu(x, k, b, 2, 1, backend),
+                                                                      k.swapaxes(2, 3), b[:4], 2, 1, backend)))
+        return jax.jit(jax.vmap(jax.value_and_grad(f, argnums=(0, 1, 2))))(x, k, b)
+    for g, w in zip(jax.tree.leaves(grads("onednn")), jax.tree.leaves(grads("cpu"))):
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-4 * float(jnp.abs(w).max()))
+print("OK")
+'''
+
+
+@needs_onednn
+def test_configurations_on_more_threads_than_cores_equal_xla():
+    """With 4 oneDNN threads and every pass counted large, 2 configurations run one after another
+    on a team and 6 side by side on XLA's threads: both equal XLA's formulation."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "CDRL_ONEDNN_THREADS": "4", "CDRL_ONEDNN_PARALLEL_MACS": "1"}
+    out = subprocess.run([sys.executable, "-c", _THREADED], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith("OK"), out.stderr[-3000:]
