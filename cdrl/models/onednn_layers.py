@@ -8,8 +8,9 @@ A transposed convolution is the input gradient of the strided one with the kerne
 axes swapped, so the three custom calls of `onednn_conv` serve both layers and their
 gradients. A SELU layer's forward is one call with the bias and SELU inside: the strided
 convolution's, or for a transposed layer oneDNN's deconvolution (the input-gradient primitive
-takes no post-ops; the thesis decoder's 32 -> 16 channel, 20 -> 38 layer over 32 frames ran in
-2.2 ms with a second pass for the bias and SELU, 1.3 ms fused). One pass stays on XLA: an input
+takes no post-ops; the thesis decoder's 32 -> 16 channel, 20 -> 38 layer over 32 frames, forward
+and backward, took 8.1 ms with a second pass for the bias and SELU, 4.9 ms fused:
+`benchmarks/layer_timings.py --onednn`). One pass stays on XLA: an input
 gradient onto a single channel (the thesis decoder's last layer forward, 16 -> 1: 4.6 ms with
 the sub-pixel form against 6.2 ms on oneDNN over 32 frames, 37 against 51 ms over 256).
 """
