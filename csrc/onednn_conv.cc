@@ -289,75 +289,62 @@ int64_t XSize(const Shapes& s) { return s.n * s.h * s.w * s.c; }
 int64_t KSize(const Shapes& s) { return s.k * s.k * s.c * s.o; }
 int64_t YSize(const Shapes& s) { return s.n * s.ho * s.wo * s.o; }
 
-ffi::Error Forward(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> y,
-                   int64_t stride, int64_t pad) {
+// Runs `pass` for every configuration: frames x, a kernel (or its gradient) k and the windows'
+// outputs y, each the input or the result by pass, with their dimensions; with a bias per
+// output channel of the pass (o for the strided forward, c for the transposed one) where given.
+ffi::Error RunConfigs(ffi::ThreadPool pool, int64_t pass, ffi::AnyBuffer::Dimensions xd, float* xp,
+                      ffi::AnyBuffer::Dimensions kd, float* kp, ffi::AnyBuffer::Dimensions yd, float* yp,
+                      int64_t stride, int64_t pad, const ffi::Buffer<ffi::F32>* bias = nullptr) {
   Shapes s;
   int64_t g;
-  if (!Unpack(x.dimensions(), kernel.dimensions(), y->dimensions(), stride, pad, &s, &g))
-    return ffi::Error::InvalidArgument(kShapeError);
-  float *xp = x.typed_data(), *kp = kernel.typed_data(), *yp = y->typed_data();
+  if (!Unpack(xd, kd, yd, stride, pad, &s, &g)) return ffi::Error::InvalidArgument(kShapeError);
+  float* bp = nullptr;
+  int64_t channels = pass == kTransposedSelu ? s.c : s.o;
+  if (bias != nullptr) {
+    auto bd = bias->dimensions();
+    if (bd.size() != xd.size() - 3 || bd.back() != channels || (bd.size() == 2 && bd[0] != g))
+      return ffi::Error::InvalidArgument("conv: a bias per output channel (and configuration) expected");
+    bp = const_cast<float*>(bias->typed_data());
+  }
   return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
-    return Run(s, kForward, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
+    return Run(s, pass, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), bp ? bp + i * channels : nullptr,
+               one);
   });
+}
+
+ffi::Error Forward(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel,
+                   ffi::ResultBuffer<ffi::F32> y, int64_t stride, int64_t pad) {
+  return RunConfigs(pool, kForward, x.dimensions(), x.typed_data(), kernel.dimensions(), kernel.typed_data(),
+                    y->dimensions(), y->typed_data(), stride, pad);
 }
 
 // SELU(forward + bias): x [(G,) n, h, w, c], the kernel and the bias [(G,) o] give y [(G,) n, ho, wo, o].
-ffi::Error ForwardSelu(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel, ffi::Buffer<ffi::F32> bias,
-                       ffi::ResultBuffer<ffi::F32> y, int64_t stride, int64_t pad) {
-  Shapes s;
-  int64_t g;
-  if (!Unpack(x.dimensions(), kernel.dimensions(), y->dimensions(), stride, pad, &s, &g))
-    return ffi::Error::InvalidArgument(kShapeError);
-  auto bd = bias.dimensions();
-  if (bd.size() != x.dimensions().size() - 3 || bd.back() != s.o || (bd.size() == 2 && bd[0] != g))
-    return ffi::Error::InvalidArgument("conv: a bias per output channel (and configuration) expected");
-  float *xp = x.typed_data(), *kp = kernel.typed_data(), *yp = y->typed_data(), *bp = bias.typed_data();
-  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
-    return Run(s, kForwardSelu, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), bp + i * s.o, one);
-  });
+ffi::Error ForwardSelu(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> kernel,
+                       ffi::Buffer<ffi::F32> bias, ffi::ResultBuffer<ffi::F32> y, int64_t stride, int64_t pad) {
+  return RunConfigs(pool, kForwardSelu, x.dimensions(), x.typed_data(), kernel.dimensions(), kernel.typed_data(),
+                    y->dimensions(), y->typed_data(), stride, pad, &bias);
 }
 
 // The input gradient: dy [(G,) n, ho, wo, o] and the kernel give dx [(G,) n, h, w, c].
-ffi::Error InputGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel, ffi::ResultBuffer<ffi::F32> dx,
-                     int64_t stride, int64_t pad) {
-  Shapes s;
-  int64_t g;
-  if (!Unpack(dx->dimensions(), kernel.dimensions(), dy.dimensions(), stride, pad, &s, &g))
-    return ffi::Error::InvalidArgument(kShapeError);
-  float *xp = dx->typed_data(), *kp = kernel.typed_data(), *yp = dy.typed_data();
-  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
-    return Run(s, kInputGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
-  });
+ffi::Error InputGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel,
+                     ffi::ResultBuffer<ffi::F32> dx, int64_t stride, int64_t pad) {
+  return RunConfigs(pool, kInputGrad, dx->dimensions(), dx->typed_data(), kernel.dimensions(), kernel.typed_data(),
+                    dy.dimensions(), dy.typed_data(), stride, pad);
 }
 
 // SELU(input gradient + bias) as a transposed convolution's forward: dy [(G,) n, ho, wo, o], the
 // kernel [(G,) k, k, c, o] of the strided convolution and a bias [(G,) c] give dx [(G,) n, h, w, c].
 ffi::Error TransposedSelu(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> dy, ffi::Buffer<ffi::F32> kernel,
                           ffi::Buffer<ffi::F32> bias, ffi::ResultBuffer<ffi::F32> dx, int64_t stride, int64_t pad) {
-  Shapes s;
-  int64_t g;
-  if (!Unpack(dx->dimensions(), kernel.dimensions(), dy.dimensions(), stride, pad, &s, &g))
-    return ffi::Error::InvalidArgument(kShapeError);
-  auto bd = bias.dimensions();
-  if (bd.size() != dy.dimensions().size() - 3 || bd.back() != s.c || (bd.size() == 2 && bd[0] != g))
-    return ffi::Error::InvalidArgument("conv: a bias per output channel (and configuration) expected");
-  float *xp = dx->typed_data(), *kp = kernel.typed_data(), *yp = dy.typed_data(), *bp = bias.typed_data();
-  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
-    return Run(s, kTransposedSelu, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), bp + i * s.c, one);
-  });
+  return RunConfigs(pool, kTransposedSelu, dx->dimensions(), dx->typed_data(), kernel.dimensions(),
+                    kernel.typed_data(), dy.dimensions(), dy.typed_data(), stride, pad, &bias);
 }
 
 // The kernel gradient: x [(G,) n, h, w, c] and dy [(G,) n, ho, wo, o] give dk [(G,) k, k, c, o].
-ffi::Error KernelGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy, ffi::ResultBuffer<ffi::F32> dk,
-                      int64_t stride, int64_t pad) {
-  Shapes s;
-  int64_t g;
-  if (!Unpack(x.dimensions(), dk->dimensions(), dy.dimensions(), stride, pad, &s, &g))
-    return ffi::Error::InvalidArgument(kShapeError);
-  float *xp = x.typed_data(), *kp = dk->typed_data(), *yp = dy.typed_data();
-  return ForConfigs(pool, g, s.Macs(), [=](int64_t i, bool one) {
-    return Run(s, kKernelGrad, xp + i * XSize(s), kp + i * KSize(s), yp + i * YSize(s), nullptr, one);
-  });
+ffi::Error KernelGrad(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> x, ffi::Buffer<ffi::F32> dy,
+                      ffi::ResultBuffer<ffi::F32> dk, int64_t stride, int64_t pad) {
+  return RunConfigs(pool, kKernelGrad, x.dimensions(), x.typed_data(), dk->dimensions(), dk->typed_data(),
+                    dy.dimensions(), dy.typed_data(), stride, pad);
 }
 
 // SELU(z + bias) for z [n, h, w, o] and bias [o]: one oneDNN binary addition with SELU's two
