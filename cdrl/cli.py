@@ -206,7 +206,7 @@ def _cmd_eval_imagination(args) -> int:
 
     try:
         result, written = imagination_report(Path(args.imagination), games=args.games, every=args.every,
-                                             out=args.out, video=not args.no_video)
+                                             out=args.out, video=not args.no_video, reward_from=args.reward_from)
     except USER_ERRORS as exc:
         print(f"cdrl eval: {exc}", file=sys.stderr)
         return 2
@@ -366,6 +366,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--every", type=int, default=10, help="with --imagination: steps between the starts (default: 10)")
     ev.add_argument("--out", metavar="FILE", default=None,
                     help="with --imagination: the JSON file (default: RUN_DIR/imagination.json)")
+    ev.add_argument("--reward-from", choices=("lookahead", "variant"), default=None,
+                    help="with --imagination: the reward head that scores imagined steps (default: the look-ahead's "
+                         "where the run trains one, else the variant's)")
     ev.add_argument("--no-video", action="store_true",
                     help="with --imagination: write no RUN_DIR/imagination.gif of real and imagined frames")
     ev.set_defaults(func=_cmd_eval)

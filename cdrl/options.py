@@ -108,6 +108,10 @@ class LossOptions:
                                     "costs about one more pass over the chunk)")
     imagined_frame_weight: float = _opt(1.0, "look-ahead: weight of the imagined frames' BCE (the imagined "
                                              "rewards' squared error takes reward_weight)", traced=True)
+    imagined_reward_balanced_weight: float = _opt(0.0, "look-ahead, reward variants: weight of the imagined rewards' "
+                                                       "squared error balanced over its sign classes (as "
+                                                       "reward_balanced_weight, at every imagined step: the "
+                                                       "imagination must carry the coming pellet)", traced=True)
     reward_head_weight: float = _opt(1.0, "look-ahead: weight of the reward head's two-hot cross-entropy",
                                      traced=True)
     cont_weight: float = _opt(1.0, "look-ahead: weight of the continuation head's BCE", traced=True)

@@ -44,6 +44,7 @@ ACCEPTED = {
     ("lookahead_steps", "0"),  # no look-ahead losses (the default)
     ("lookahead_stride", "0"),  # the look-ahead's starts every K steps (the default)
     ("imagined_frame_weight", "0"), ("reward_head_weight", "0"), ("cont_weight", "0"),  # a look-ahead term off
+    ("imagined_reward_balanced_weight", "0"),  # no balanced reward term at the imagined steps (the default)
     ("value_weight", "0"),  # no value head's loss
     ("head_grad", "0"),  # the heads learn without moving the model
     ("value_target_decay", "0"),  # the value's target is the head itself

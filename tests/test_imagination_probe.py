@@ -17,6 +17,7 @@ from cdrl.models import make_variant
 from cdrl.models.arch import TINY
 from cdrl.models.base import StepInput
 from cdrl.models.controller import FinalProposal
+from cdrl.training import lookahead as la
 from envs.policies import privileged_policy
 from envs.slither import Slither
 
@@ -164,6 +165,26 @@ def test_an_oracle_names_the_real_best_at_every_start_and_a_constant_at_a_third(
         assert got["best_steer_agree"] == pytest.approx(1 / 3)
         assert got["best_share_imagined"] == pytest.approx([1 / 3] * 3)
     assert constant["reward_auc"]["all"] == [0.5] * 3
+
+
+def test_reward_from_picks_the_head_that_scores_the_imagined_steps():
+    """The oracle with look-ahead heads beside it: by default the heads score the imagined steps
+    (their last layer starts at zero, so every sequence ties); `reward_from="variant"` takes the
+    oracle's own rewards and names turn1 at every start. A head the run lacks is refused."""
+    game, env_params, variant, params = _turn_one()
+    hp = la.LookaheadHParams.create(steps=2)
+    params = la.with_heads(variant, {**params, "oracle": jnp.float32(1.0)}, jax.random.PRNGKey(1), hp)
+    run = lambda source: ip.probe(variant, params, game, env_params, hp, 0.9, max_steps=games.MAX_STEPS,  # noqa: E731
+                                  games=1, every=8, horizon=3, ks=(3,), reward_from=source)
+    heads, own = run(None), run("variant")
+    assert heads["reward_source"] == "lookahead" and own["reward_source"] == "variant"
+    assert heads["by_steps"]["3"]["mean_imagined"] == pytest.approx([0.0] * 4, abs=1e-6)
+    assert own["by_steps"]["3"]["mean_imagined"] == [0.0, 0.0, 3.0, 0.0]
+    assert own["by_steps"]["3"]["best_steer_agree"] == 1.0
+    with pytest.raises(ValueError, match="no look-ahead reward head"):
+        ip.reward_source(variant, None, "lookahead")
+    with pytest.raises(ValueError, match="no reward head of its own"):
+        ip.reward_source(make_variant("action_loop", TINY), hp, "variant")
 
 
 def test_the_video_shows_each_start_and_step_real_beside_imagined(tmp_path):

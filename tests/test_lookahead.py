@@ -8,6 +8,7 @@ import pytest
 
 from cdrl.data.stream import Chunk
 from cdrl.models import TINY, StepInput, make_variant
+from cdrl.runs.config import RunConfig
 from cdrl.training import lookahead as la
 from cdrl.training.optim import HParams
 from cdrl.training.step import chunk_loss, init_state, train_step
@@ -23,7 +24,8 @@ def _chunk(seed=0):
     is_first[4, 1] = True  # stream 1 starts a new episode at step 4
     return Chunk(obs=frames[:-1], next_obs=frames[1:],
                  action=(jax.random.uniform(k[1], (T, B, 3)) > 0.5).astype(jnp.float32),
-                 reward=jnp.round(jax.random.normal(k[2], (T, B)), 1), is_first=jnp.asarray(is_first))
+                 reward=jnp.round(jax.random.normal(k[2], (T, B)), 1) * (jax.random.uniform(k[3], (T, B)) > 0.4),
+                 is_first=jnp.asarray(is_first))
 
 
 def test_two_hot_puts_its_mass_on_the_two_nearest_bins_and_keeps_the_mean():
@@ -88,7 +90,7 @@ def _by_hand(variant, params, hp, chunk, weights):
     # (h, reward target, continuation target or None, return target or None) of every scored state
     scored = [(real_h[t, b], rew[t, b], None if t == T - 1 else float(not first[t + 1, b]),
                None if t == T - 1 else ret[t, b]) for t in range(T) for b in range(B)]
-    imag_bce, imag_mse = [], []
+    imag_bce, imag_mse, imag_sign = [], [], []
     for s in range(0, T, hp.stride):
         for b in range(B):
             c = jax.tree.map(lambda x: x[b:b + 1], carries[s])
@@ -103,6 +105,7 @@ def _by_hand(variant, params, hp, chunk, weights):
                 lg, target = np.asarray(logits[0], np.float64), nxt[i, b]
                 imag_bce.append(np.mean(np.logaddexp(0, lg) - target * lg))
                 imag_mse.append((float(out["reward"][0]) - rew[i, b]) ** 2)
+                imag_sign.append(np.sign(rew[i, b]) if abs(rew[i, b]) > 1e-6 else 0.0)
                 h = np.asarray(variant.features(c))[0]
                 scored.append((h, rew[i, b], None if i == T - 1 else float(not first[i + 1, b]),
                                None if i == T - 1 else ret[i, b]))
@@ -115,7 +118,11 @@ def _by_hand(variant, params, hp, chunk, weights):
             c_bce.append(np.logaddexp(0, zc) - cont * zc)
             v_ce.append(twohot_ce(zv, ret_t))
             v_mse.append((decode(zv) - ret_t) ** 2)
-    return {"imag_obs_bce": np.mean(imag_bce), "imag_reward_mse": np.mean(imag_mse), "reward_twohot": np.mean(r_ce),
+    # the imagined rewards' squared error, averaged within each sign class of the reward, then over the classes
+    errors, signs = np.asarray(imag_mse), np.asarray(imag_sign)
+    balanced = np.mean([errors[signs == c].mean() for c in (-1.0, 0.0, 1.0) if (signs == c).any()])
+    return {"imag_obs_bce": np.mean(imag_bce), "imag_reward_mse": np.mean(imag_mse), "imag_reward_balanced": balanced,
+            "reward_twohot": np.mean(r_ce),
             "cont_bce": np.mean(c_bce), "value_twohot": np.mean(v_ce), "reward_head_mse": np.mean(r_mse),
             "value_mse": np.mean(v_mse)}
 
@@ -184,4 +191,6 @@ def test_look_ahead_needs_a_model_that_acts_and_refuses_multi_step_feeding():
         la.with_heads(make_variant("main", TINY), {}, jax.random.PRNGKey(0), la.LookaheadHParams.create())
     with pytest.raises(ValueError, match="choose one"):
         HParams.create(make_variant("final_proposal", TINY), feed_every=3, lookahead=la.LookaheadHParams.create())
+    with pytest.raises(ValueError, match="lookahead_steps >= 1"):
+        RunConfig(variant="final_proposal", learner="world_model", imagined_reward_balanced_weight=0.003)
 

@@ -25,11 +25,11 @@ FRAME_MS = 250
 
 
 def watch(variant, params, game, env_params, hp, *, starts: int = WATCH_STARTS, every: int = 10,
-          steps: int = ip.HORIZON) -> dict:
+          steps: int = ip.HORIZON, source: str | None = None) -> dict:
     """The first followed game's branches at `starts` starts, `every` steps apart, with their
     frames (`imagination_probe.followed_branches`, game 0): `[starts, sequences, steps, ...]`."""
     b = ip.followed_branches(variant, params, game, env_params, hp, games=1, points=starts, every=every,
-                             horizon=steps, frames=True)
+                             horizon=steps, frames=True, source=source)
     return {name: b[name][0] for name in ("real", "imagined", "value", "on", "real_frames", "imagined_frames")}
 
 
@@ -64,10 +64,10 @@ def frame_images(watched: dict, with_value: bool) -> list:
     return images
 
 
-def load_run(run_dir: Path):
+def load_run(run_dir: Path, reward_from: str | None = None):
     """(config, variant, parameters, step, game, game parameters) of a run the probe can read:
-    a controller variant's world model on the built-in game, with a reward head. ValueError
-    naming what is missing otherwise."""
+    a controller variant's world model on the built-in game, with the reward head `reward_from`
+    (`imagination_probe.reward_source`). ValueError naming what is missing otherwise."""
     from cdrl.models import make_variant
     from cdrl.runs.init_from import restore_params
     from cdrl.runs.rundir import RunDir
@@ -81,7 +81,7 @@ def load_run(run_dir: Path):
         raise ValueError(f"run {run_dir} trains on data {cfg.data!r}, not the built-in game the probe plays")
     variant = make_variant(cfg.variant, cfg.arch)
     try:
-        ip.reward_source(variant, cfg.lookahead_hparams())
+        ip.reward_source(variant, cfg.lookahead_hparams(), reward_from)
     except ValueError as exc:
         raise ValueError(f"run {run_dir}: {exc}") from None
     cfg, params, step = restore_params(run)
@@ -90,16 +90,17 @@ def load_run(run_dir: Path):
 
 
 def imagination_report(run_dir: Path, games: int = 32, every: int = 10, out: Path | None = None,
-                       video: bool = True) -> tuple[dict, list[Path]]:
+                       video: bool = True, reward_from: str | None = None) -> tuple[dict, list[Path]]:
     """The probe's figures of the run in `run_dir`, written as JSON to `out` (default
-    RUN_DIR/imagination.json), and with `video` its GIF, RUN_DIR/imagination.gif. Returns the
-    figures and the paths written."""
+    RUN_DIR/imagination.json), and with `video` its GIF, RUN_DIR/imagination.gif. The imagined
+    rewards come from `reward_from` (`imagination_probe.reward_source`). Returns the figures and
+    the paths written."""
     run_dir = Path(run_dir)
-    cfg, variant, params, step, game, env_params = load_run(run_dir)
+    cfg, variant, params, step, game, env_params = load_run(run_dir, reward_from)
     hp = cfg.lookahead_hparams()
     max_steps = int(env_params.max_steps)
     figures = ip.probe(variant, params, game, env_params, hp, cfg.gamma, max_steps=max_steps, games=games,
-                       every=every)
+                       every=every, reward_from=reward_from)
     result = {"run": str(run_dir), "variant": cfg.variant, "preset": cfg.preset, "level": cfg.level, "step": step,
               "games": games, "every": every, "horizon": ip.HORIZON, "explore": ip.EXPLORE, "gamma": cfg.gamma,
               "sequences": ip.SEQUENCES, "real_return": f"the plain sum of the real rewards over {ip.HORIZON} steps",
@@ -109,7 +110,8 @@ def imagination_report(run_dir: Path, games: int = 32, every: int = 10, out: Pat
     written = [out]
     if video:
         starts = max(1, min(WATCH_STARTS, max_steps // every - 1))
-        watched = watch(variant, params, game, env_params, hp, starts=starts, every=every)
+        watched = watch(variant, params, game, env_params, hp, starts=starts, every=every,
+                        source=figures["reward_source"])
         written.append(write_gif(frame_images(watched, hp is not None), run_dir / "imagination.gif", FRAME_MS))
     return result, written
 

@@ -91,13 +91,22 @@ def start(variant: Variant, game, env_params, key):
             jnp.zeros((1, size, size), jnp.float32))
 
 
-def reward_source(variant: Variant, hp) -> str:
-    """Where the imagined reward comes from: the look-ahead's reward head where the run trains
-    one (it is fitted at every imagined step), else the variant's own. ValueError if the model
-    has neither, or imagines no actions."""
+def reward_source(variant: Variant, hp, choice: str | None = None) -> str:
+    """Where the imagined reward comes from: `choice` ("lookahead" or "variant"), by default the
+    look-ahead's reward head where the run trains one (it is fitted at every imagined step), else
+    the variant's own. ValueError if the model has not that head, or imagines no actions."""
     if not variant.has_controller:
         raise ValueError(f"variant {variant.name!r} takes no actions, so it cannot imagine the steering choices "
                          "(a controller variant: action_loop, reward_prediction, final_proposal)")
+    if choice not in (None, "lookahead", "variant"):
+        raise ValueError(f"the imagined reward comes from 'lookahead' or 'variant', got {choice!r}")
+    if choice == "variant" and not variant.predicts_reward:
+        raise ValueError(f"variant {variant.name!r} has no reward head of its own (reward_prediction or "
+                         "final_proposal have one)")
+    if choice == "lookahead" and hp is None:
+        raise ValueError("the run has no look-ahead reward head (train it with --lookahead-steps)")
+    if choice is not None:
+        return choice
     if hp is not None:
         return "lookahead"
     if variant.predicts_reward:
@@ -106,9 +115,9 @@ def reward_source(variant: Variant, hp) -> str:
                      "(train it with --lookahead-steps, or use reward_prediction or final_proposal)")
 
 
-@functools.partial(jax.jit, static_argnames=("variant", "game", "points", "every", "horizon", "frames"))
+@functools.partial(jax.jit, static_argnames=("variant", "game", "points", "every", "horizon", "frames", "source"))
 def _followed_branches(variant: Variant, params, game, env_params, hp, keys, *, points: int, every: int,
-                       horizon: int, frames: bool):
+                       horizon: int, frames: bool, source: str):
     buttons = jnp.asarray(list(SEQUENCES.values()), jnp.float32)
     n = buttons.shape[0]
     heads = params.get("lookahead") if hp is not None else None
@@ -131,7 +140,7 @@ def _followed_branches(variant: Variant, params, game, env_params, hp, keys, *, 
             carry, frame = c
             carry, out = variant.imagine_step(params, carry, frame, buttons)
             h = variant.features(carry)
-            r = lookahead.reward(heads, h, hp) if heads is not None else out["reward"]
+            r = lookahead.reward(heads, h, hp) if source == "lookahead" else out["reward"]
             nxt = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
             shown = None
             if frames:
@@ -158,17 +167,18 @@ def _followed_branches(variant: Variant, params, game, env_params, hp, keys, *, 
 
 
 def followed_branches(variant: Variant, params, game, env_params, hp, *, games: int, points: int, every: int,
-                      horizon: int, frames: bool = False) -> dict:
+                      horizon: int, frames: bool = False, source: str | None = None) -> dict:
     """The followed play of `games` games and its branches at `points` starts, every `every`
     steps, as numpy arrays. Per game, start, sequence and step `[games, points, 4, horizon]`:
     `real` and `imagined` rewards, `on` (the game still on before the step), `value` (V of
     the imagined state after the step; 0 without a value head); with `frames`, `real_frames`
     and `imagined_frames` `[..., horizon, H, W]` in [0, 1]. Per start `[games, points]`: `alive`.
     Per followed step `[games, points * every]`: `followed_value` V(h_t), `followed_reward` and
-    `followed_alive`."""
+    `followed_alive`. `source`: where the imagined rewards come from (`reward_source`)."""
     keys = jax.vmap(jax.random.PRNGKey)(GAME_SEED + jnp.arange(games))
     out, alive, v, reward, on = _followed_branches(variant, params, game, env_params, hp, keys, points=points,
-                                                   every=every, horizon=horizon, frames=frames)
+                                                   every=every, horizon=horizon, frames=frames,
+                                                   source=reward_source(variant, hp, source))
     # [games, points, horizon, sequences, ...] -> [games, points, sequences, horizon, ...]
     result = {name: np.moveaxis(np.asarray(x), 3, 2) for name, x in out.items() if x is not None}
     flat = lambda x: np.asarray(x).reshape(games, points * every)  # noqa: E731
@@ -263,15 +273,16 @@ def reward_aucs(real: np.ndarray, imagined: np.ndarray, on: np.ndarray) -> dict:
 
 
 def probe(variant: Variant, params, game, env_params, hp, gamma: float, *, max_steps: int, games: int = 32,
-          every: int = 10, horizon: int = HORIZON, ks=KS) -> dict:
+          every: int = 10, horizon: int = HORIZON, ks=KS, reward_from: str | None = None) -> dict:
     """The module's figures for a world model (`params`, with `params["lookahead"]` when `hp` is
-    not None) on `game`, starts every `every` steps up to `max_steps`."""
-    source = reward_source(variant, hp)
+    not None) on `game`, starts every `every` steps up to `max_steps`; the imagined rewards from
+    `reward_from` (`reward_source`)."""
+    source = reward_source(variant, hp, reward_from)
     if games < 1 or every < 1 or max_steps // every < 2:
         raise ValueError(f"{games} games with a start every {every} steps of {max_steps} leave no start")
     points = max_steps // every - 1
     b = followed_branches(variant, params, game, env_params, hp, games=games, points=points, every=every,
-                          horizon=horizon)
+                          horizon=horizon, source=source)
     alive = b["alive"]
     real, imagined, values, on = (b[name][alive] for name in ("real", "imagined", "value", "on"))
     followed = b["followed_alive"]

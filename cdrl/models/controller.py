@@ -25,13 +25,16 @@ from cdrl.models.base import StepInput, bce_with_logits
 from cdrl.models.observation import ClosedLoop, MainAction
 
 
-def balanced_squared_error(pred: jax.Array, target: jax.Array, tol: float = 1e-6) -> jax.Array:
+def balanced_squared_error(pred: jax.Array, target: jax.Array, tol: float = 1e-6,
+                           mask: jax.Array | None = None) -> jax.Array:
     """The squared error of `pred` averaged within each sign class of `target` (below -`tol`,
     within it, above it), the classes present in the batch weighing alike: a rare reward (a
     pellet eaten, a few steps in a hundred) counts as much as the common none. UNREAL's reward
     prediction (Jaderberg et al. 2016) balances so, sampling sequences that end in reward and in
-    none equally often; the plain mean lets a frequent class decide what the core learns."""
-    classes = [target < -tol, jnp.abs(target) <= tol, target > tol]
+    none equally often; the plain mean lets a frequent class decide what the core learns.
+    `mask` (default: all) picks the entries that count."""
+    mask = jnp.ones(target.shape, bool) if mask is None else jnp.broadcast_to(mask, target.shape)
+    classes = [mask & (target < -tol), mask & (jnp.abs(target) <= tol), mask & (target > tol)]
     err = jnp.square(pred - target)
     per_class = [jnp.sum(jnp.where(m, err, 0.0)) / jnp.maximum(jnp.sum(m), 1) for m in classes]  # 0 if absent
     return sum(per_class) / sum(jnp.any(m).astype(jnp.float32) for m in classes)

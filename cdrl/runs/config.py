@@ -64,13 +64,16 @@ class _RunConfigMethods:
                              f"episodes); a {self.kind} run of {self.variant!r} plays its own frames")
         if self.lookahead_steps > 0:
             self.check_lookahead()
+        elif self.imagined_reward_balanced_weight > 0:
+            raise ValueError(f"imagined_reward_balanced_weight {self.imagined_reward_balanced_weight!r} weighs the "
+                             "imagined steps' reward error; turn the imagination on with lookahead_steps >= 1")
         if self.mirror_streams and (self.kind != "offline" or self.data != "game" or self.batch < 2):
             raise ValueError(f"mirror_streams mirrors half of an offline run's streams of the built-in game (a {self.kind} "
                              f"run on data {self.data!r} with batch {self.batch}): it needs learner world_model or a "
                              "variant without a controller, data 'game' and batch >= 2")
         takes_balanced = (self.kind != "model_free" and VARIANTS[self.variant].predicts_reward
                           and not (self.kind == "online" and self.learner == "thesis_ascent"))
-        if self.reward_balanced_weight > 0 and not takes_balanced:
+        if (self.reward_balanced_weight > 0 or self.imagined_reward_balanced_weight > 0) and not takes_balanced:
             raise ValueError(f"reward_balanced_weight {self.reward_balanced_weight!r} weighs a reward head's error in "
                              f"offline training and the replay learners' model updates; {self.variant!r} "
                              f"{'with learner thesis_ascent ' if self.kind == 'online' else ''}has no such term "
@@ -174,6 +177,7 @@ class _RunConfigMethods:
         heads = self.lookahead_hparams()
         if heads is not None:
             weights.update(imag_obs_bce=self.imagined_frame_weight, imag_reward_mse=self.reward_weight,
+                           imag_reward_balanced=self.imagined_reward_balanced_weight,
                            reward_twohot=self.reward_head_weight, cont_bce=self.cont_weight,
                            value_twohot=self.value_weight)
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
@@ -224,8 +228,8 @@ RANGES: dict[str, Range] = {
     **dict.fromkeys(("unroll", "batch", "steps", "episodes", "episode_steps", "checkpoint_every", "keep_checkpoints",
                      "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
                      "horizon", "max_filter"), AT_LEAST_1),
-    **dict.fromkeys(("lookahead_steps", "lookahead_stride", "imagined_frame_weight", "reward_head_weight",
-                     "cont_weight", "value_weight", "head_grad"), AT_LEAST_0),
+    **dict.fromkeys(("lookahead_steps", "lookahead_stride", "imagined_frame_weight", "imagined_reward_balanced_weight",
+                     "reward_head_weight", "cont_weight", "value_weight", "head_grad"), AT_LEAST_0),
     "value_target_decay": FRACTION,
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",
                      "grad_clip", "ascent", "reward_weight", "reward_balanced_weight", "noise_std", "value_coef",

@@ -8,8 +8,9 @@ that path, as TD-MPC2 and MuZero train their latent dynamics over a few unrolled
 2. from every `stride`-th step s, the model imagines `steps` K more steps
    (`Variant.imagine_step`: fed its own predicted frame, or a zero error for closed loop −),
    taking the recorded buttons a_{s+1} .. a_{s+K};
-3. imagined step k is scored against the real o_{s+k+1} and r_{s+k+1} (frame BCE and the
-   variant's reward MSE), while it stays inside the chunk and its episode.
+3. imagined step k is scored against the real o_{s+k+1} and r_{s+k+1} (frame BCE, the
+   variant's reward MSE and its error balanced over the reward's sign classes), while it stays
+   inside the chunk and its episode.
 
 Three heads read the model's state h (`Variant.features`) at every real step and every
 imagined one. They live in `params["lookahead"]`:
@@ -32,14 +33,15 @@ import jax.numpy as jnp
 
 from cdrl.models import nets
 from cdrl.models.base import StepInput, Variant, elementwise_bce
+from cdrl.models.controller import balanced_squared_error
 from cdrl.training.optim import OptHParams
 
 # The names of the look-ahead loss terms (each with a weight of the same name in `HParams`).
-TERMS = ("imag_obs_bce", "imag_reward_mse", "reward_twohot", "cont_bce", "value_twohot")
+TERMS = ("imag_obs_bce", "imag_reward_mse", "imag_reward_balanced", "reward_twohot", "cont_bce", "value_twohot")
 # Their metrics beside them (weight 0): the heads' expected values against their targets.
 METRICS = ("reward_head_mse", "value_mse")
-DEFAULT_WEIGHTS = {"imag_obs_bce": 1.0, "imag_reward_mse": 1.0, "reward_twohot": 1.0, "cont_bce": 1.0,
-                   "value_twohot": 1.0, "reward_head_mse": 0.0, "value_mse": 0.0}
+DEFAULT_WEIGHTS = {"imag_obs_bce": 1.0, "imag_reward_mse": 1.0, "imag_reward_balanced": 0.0, "reward_twohot": 1.0,
+                   "cont_bce": 1.0, "value_twohot": 1.0, "reward_head_mse": 0.0, "value_mse": 0.0}
 
 
 @flax.struct.dataclass
@@ -268,7 +270,8 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
                                           jax.nn.sigmoid(outs["logits"][starts]), xs.action[index])
     pixel = jnp.mean(elementwise_bce(logits, next_obs[index]), axis=(-2, -1))
     terms = {"imag_obs_bce": _mean(pixel, valid),
-             "imag_reward_mse": _mean(jnp.square(imag_r - rewards[index]), valid)}
+             "imag_reward_mse": _mean(jnp.square(imag_r - rewards[index]), valid),
+             "imag_reward_balanced": balanced_squared_error(imag_r, rewards[index], mask=valid)}
 
     real_h = variant.features(carries)  # [T, B, F]
     cont, ret, known = targets(xs.is_first, rewards, value(heads, jax.lax.stop_gradient(real_h), hp, target=True), hp)

@@ -38,6 +38,10 @@ LADDER = {
     "frames": {**OFF, "imagined_frame_weight": 1.0},
     "reward": {**OFF, "imagined_frame_weight": 1.0, "reward_head_weight": 1.0},
     "full": {},
+    # + the variant's reward error balanced over its sign classes (weight --balanced), on the real
+    # steps, then on the imagined ones too
+    "full_bal": {"reward_balanced_weight": None},
+    "full_bal_imag": {"reward_balanced_weight": None, "imagined_reward_balanced_weight": None},
 }
 OPEN_LOOP_STEPS = (1, 5, 15)
 
@@ -45,11 +49,16 @@ OPEN_LOOP_STEPS = (1, 5, 15)
 def config_of(name: str, args, seed: int):
     from cdrl.runs.config import RunConfig
 
-    options = {"lookahead_steps": args.lookahead_steps, **LADDER[name]}
     return RunConfig(variant=args.variant, learner="world_model", preset="small", max_filter=args.max_filter,
                      level=args.level, steps=args.steps, seed=seed, eval_every=max(1, args.steps // 2),
                      checkpoint_every=max(1, args.steps // 2), tensorboard=False, head_grad=args.head_grad,
-                     **options)
+                     grad_clip=args.grad_clip, **options_of(name, args))
+
+
+def options_of(name: str, args) -> dict:
+    """Configuration `name`'s options beside the study's, the balanced weights filled in."""
+    return {"lookahead_steps": args.lookahead_steps,
+            **{k: args.balanced if v is None else v for k, v in LADDER[name].items()}}
 
 
 def measure(run_dir: Path, args) -> dict:
@@ -81,6 +90,8 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--lookahead-steps", type=int, default=3)
     parser.add_argument("--head-grad", type=float, default=0.01)
+    parser.add_argument("--balanced", type=float, default=0.003, help="full_bal, full_bal_imag: the balanced weight")
+    parser.add_argument("--grad-clip", type=float, default=0.0, help="the model's global gradient norm clip (0: none)")
     parser.add_argument("--episodes", type=int, default=6, help="held-out episodes scored open loop")
     parser.add_argument("--games", type=int, default=32, help="games of the imagination probe")
     parser.add_argument("--train-only", action="store_true", help="train (or resume) the runs, measure nothing")
@@ -92,7 +103,8 @@ def main(argv=None) -> int:
 
     result = {"experiment": "lookahead_study", "variant": args.variant, "preset": "small",
               "max_filter": args.max_filter, "level": args.level, "steps": args.steps,
-              "lookahead_steps": args.lookahead_steps, "head_grad": args.head_grad, "configs": {}}
+              "lookahead_steps": args.lookahead_steps, "head_grad": args.head_grad, "grad_clip": args.grad_clip,
+              "configs": {}}
     for name in args.configs:
         rows = {}
         for seed in args.seeds:
@@ -112,7 +124,7 @@ def main(argv=None) -> int:
         summary = {"excess_ratio": across([r["excess_ratio"] for r in rows.values()]),
                    "open_loop": {k: across([r["open_loop"][k] for r in rows.values()]) for k in rows[args.seeds[0]]
                                  ["open_loop"]}}
-        result["configs"][name] = {"options": LADDER[name], "seeds": rows, "summary": summary}
+        result["configs"][name] = {"options": options_of(name, args), "seeds": rows, "summary": summary}
     emit(result, args.out)
     return 0
 
