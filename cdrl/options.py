@@ -44,6 +44,9 @@ class GameOptions:
     env: str = _opt("", "game parameters over the level's, e.g. 'max_steps=300,pellet_init_fill=0.3'")
     episodes: int = _opt(60, "episodes to collect when data is 'game' or 'synthetic'")
     episode_steps: int = _opt(200, "step limit of a collected episode")
+    data_policy: str = _opt("auto", "data 'game': the policy that plays the collected episodes, one of "
+                                    "envs.policies.POLICIES (behaviour, uniform, held_uniform, never_accelerate); "
+                                    "auto: uniform for a variant that takes actions, else behaviour (the thesis's)")
 
 
 @dataclasses.dataclass(frozen=True)

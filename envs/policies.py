@@ -10,6 +10,9 @@ data set records.  The blind policies accept observations and ignore them:
 - ``behaviour``: the thesis's behaviour switching (observation data; never accelerates);
 - ``uniform``: three values uniform in [0, 1] (action data; accelerates half the time, and
   accelerating costs length every step);
+- ``held_uniform``: ``uniform``'s buttons, each draw held for a while: new buttons with
+  probability ``HOLD_SWITCH_PROB`` a step, so a draw lasts 5 steps on average (action data
+  whose button sequences last as long as a planner's do);
 - ``never_accelerate``: uniform random turning, accelerate never pressed. Since
   accelerating costs length, this is the floor a controller must beat to show control:
   learning "never accelerate" alone reaches it.
@@ -45,6 +48,7 @@ BEHAVIOURS = jnp.asarray(
 """The 4 behaviours of the behaviour-switching policy, one action row each."""
 
 SWITCH_PROB = 0.01
+HOLD_SWITCH_PROB = 0.2  # held_uniform: the chance of new buttons each step (a draw lasts 5 steps on average)
 
 
 @struct.dataclass
@@ -94,6 +98,28 @@ def uniform_step(key: jax.Array, state: UniformState, obs: Any = None):
     return fastrng.uniform(key, 3), state
 
 
+@struct.dataclass
+class HeldState:
+    """State of the held-uniform policy: the buttons being held, [3]."""
+
+    action: jnp.ndarray
+
+
+def held_uniform_init(key: jax.Array) -> HeldState:
+    """Starts holding uniform buttons."""
+    return HeldState(action=fastrng.uniform(key, 3))
+
+
+def held_uniform_step(key: jax.Array, state: HeldState, obs: Any = None, switch_prob: float = HOLD_SWITCH_PROB):
+    """With probability ``switch_prob`` draw new uniform buttons, then press the held ones.
+
+    Returns ``(action [3] float32, new state)``.
+    """
+    u = fastrng.uniform(key, 4)
+    action = jnp.where(u[0] < switch_prob, u[1:], state.action)
+    return action, HeldState(action=action)
+
+
 def never_accelerate_step(key: jax.Array, state: UniformState, obs: Any = None):
     """Right and left each pressed with probability 1/2, accelerate never.
 
@@ -127,6 +153,7 @@ class Policy:
 POLICIES: dict[str, Policy] = {
     "behaviour": Policy("behaviour", behaviour_init, behaviour_step),
     "uniform": Policy("uniform", uniform_init, uniform_step),
+    "held_uniform": Policy("held_uniform", held_uniform_init, held_uniform_step),
     "never_accelerate": Policy("never_accelerate", uniform_init, never_accelerate_step),
 }
 

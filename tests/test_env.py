@@ -13,7 +13,8 @@ from gymnasium.utils.env_checker import check_env
 
 import envs
 from envs import fastrng
-from envs.policies import BEHAVIOURS, behaviour_init, behaviour_step, uniform_init, uniform_step
+from envs.policies import (BEHAVIOURS, HOLD_SWITCH_PROB, behaviour_init, behaviour_step, held_uniform_init,
+                           held_uniform_step, uniform_init, uniform_step)
 from envs.preprocess import central_crop, preprocess
 from envs.render import wrap_delta
 from envs.gym_env import game_for
@@ -428,6 +429,21 @@ def test_uniform_policy_values():
     assert a.min() >= 0.0 and a.max() < 1.0
     assert np.abs(a.mean(axis=0) - 0.5).max() < 0.03
     assert abs(np.corrcoef(a[:-1, 0], a[1:, 0])[0, 1]) < 0.1
+
+
+def test_held_uniform_policy_holds_uniform_buttons_for_five_steps_on_average():
+    """New buttons with probability 0.2 a step (a draw drawn again equal has chance 0), each
+    uniform in [0, 1]; between draws the buttons stay as they were."""
+    def roll(key):
+        return jax.lax.scan(lambda s, k: held_uniform_step(k, s, None)[::-1],
+                            held_uniform_init(key), jax.random.split(key, 5000))[1]
+
+    a = np.asarray(jax.jit(roll)(jax.random.PRNGKey(2)))
+    changed = (np.diff(a, axis=0) != 0).any(axis=1)
+    assert abs(changed.mean() - HOLD_SWITCH_PROB) < 0.02
+    draws = np.concatenate([a[:1], a[1:][changed]])
+    assert draws.min() >= 0.0 and draws.max() < 1.0 and np.abs(draws.mean(axis=0) - 0.5).max() < 0.04
+    assert ((np.diff(a, axis=0) != 0).all(axis=1) == changed).all()  # a new draw changes every button
 
 
 def test_fastrng_keys_are_independent():

@@ -2,6 +2,7 @@
 scores against direct computations, an oracle and a constant model on a game whose answer is
 known, the play it follows against the model stepped by hand, and the video of imagination."""
 
+import dataclasses
 import json
 
 import jax
@@ -187,6 +188,36 @@ def test_reward_from_picks_the_head_that_scores_the_imagined_steps():
         ip.reward_source(make_variant("action_loop", TINY), hp, "variant")
 
 
+def test_the_value_on_recorded_play_equals_a_step_by_step_loop():
+    """`data_value_corr`: V(h_t) after each recorded step, fed teacher-forced from the episode's
+    start, against Σ_k γ^k r_{t+1+k} up to the episode's end, pooled over the episodes."""
+    from cdrl.data.synthetic import synthetic_episodes
+
+    variant = make_variant("final_proposal", TINY)
+    hp = la.LookaheadHParams.create(steps=2)
+    params = la.with_heads(variant, variant.init(jax.random.PRNGKey(0)), jax.random.PRNGKey(1), hp)
+    value = params["lookahead"]["value"]
+    value = {**value, "dense1": jax.tree.map(lambda x: jax.random.normal(jax.random.PRNGKey(2), x.shape),
+                                             value["dense1"])}
+    params = {**params, "lookahead": {**params["lookahead"], "value": value}}
+    episodes = synthetic_episodes(2, 9, TINY.image_size, seed=3)
+    rng = np.random.default_rng(0)
+    episodes = [dataclasses.replace(ep, rewards=rng.normal(size=len(ep.rewards)).astype(np.float32)) for ep in episodes]
+    gamma = 0.8
+    got, n = ip.data_value_corr(variant, params, hp, episodes, gamma)
+    values, returns = [], []
+    for ep in episodes:
+        carry = variant.init_carry(1)
+        for t in range(len(ep.rewards) - 1):
+            frame = jnp.asarray(np.asarray(ep.frames[t], np.float32) / (255.0 if ep.frames.dtype == np.uint8 else 1.0))
+            carry, _ = variant.step(params, carry, StepInput(obs=frame[None], action=jnp.asarray(ep.actions[t:t + 1]),
+                                                             is_first=jnp.asarray([t == 0])))
+            values.append(float(la.value(params["lookahead"], variant.features(carry), hp)[0]))
+            returns.append(sum(gamma ** k * float(r) for k, r in enumerate(ep.rewards[t + 1:])))
+    assert n == len(values) == 2 * 8
+    assert got == pytest.approx(float(np.corrcoef(values, returns)[0, 1]), abs=1e-4)
+
+
 def test_the_video_shows_each_start_and_step_real_beside_imagined(tmp_path):
     """Two starts of three steps: six frames. The tiny preset's 16-pixel frames are drawn 6 times
     as large: 2 * 96 + 3 * 4 = 204 pixels wide, 14 + 4 * (96 + 24 + 4) = 510 high; the first
@@ -285,6 +316,7 @@ def test_cdrl_eval_imagination_writes_its_figures_and_video(tmp_path, capsys):
     assert 0 < result["starts"] <= 2 * 5 and result["value_head"] and result["gamma"] == cfg.gamma
     assert result["reward_source"] == "lookahead"
     assert isinstance(result["value_corr"], float) and 0 < result["value_states"] <= 2 * 50
+    assert isinstance(result["value_corr_data"], float) and result["value_states_data"] > 0
     assert list(result["by_horizon"]) == ["1", "3", "5", "15"] and list(result["by_steps"]) == ["1", "5", "15"]
     assert len(result["reward_auc"]["straight"]) == len(result["reward_auc"]["all"]) == 15
     with Image.open(run.path / "imagination.gif") as gif:

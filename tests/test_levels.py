@@ -72,6 +72,20 @@ def test_a_runs_level_reaches_its_data(tmp_path):
     assert manifest["config"]["env_params"]["background_contrast"] == 0.0
 
 
+def test_the_data_policy_plays_the_collected_episodes(tmp_path):
+    """`data_policy` names the policy in the data set's manifest; by default a variant that acts
+    gets uniform play, and `held_uniform` holds its buttons across steps."""
+    base = dict(preset="tiny", episodes=2, episode_steps=30, data="game", variant="final_proposal",
+                learner="world_model")
+    held, _ = load_episodes(RunConfig(data_policy="held_uniform", **base), tmp_path)
+    auto, _ = load_episodes(RunConfig(**base), tmp_path)
+    policies = {json.loads((d / "manifest.json").read_text())["config"]["policy"] for d in tmp_path.iterdir()}
+    assert policies == {"held_uniform", "uniform"}
+    repeats = lambda eps: np.mean([(np.diff(eps[i].actions[:-1], axis=0) == 0).all(axis=1).mean()  # noqa: E731
+                                   for i in range(len(eps))])
+    assert repeats(held) > 0.6 and repeats(auto) < 0.1
+
+
 def test_the_visible_level_draws_pellets_that_survive_the_small_preset(background_only):
     """Level `visible` is the thesis level's physics with pellets drawn at a snake segment's
     radius: one pellet in an empty view brightens the 64 x 64 frame by most of its range, the

@@ -101,6 +101,13 @@ def imagination_report(run_dir: Path, games: int = 32, every: int = 10, out: Pat
     max_steps = int(env_params.max_steps)
     figures = ip.probe(variant, params, game, env_params, hp, cfg.gamma, max_steps=max_steps, games=games,
                        every=every, reward_from=reward_from)
+    if hp is not None:  # the value on the run's own held-out play, whose policy it was fitted to
+        from cdrl.runs.rundir import RunDir
+        from cdrl.runs.sources import load_episodes
+
+        held_out = load_episodes(cfg, RunDir(run_dir).data_cache)[1]
+        figures["value_corr_data"], figures["value_states_data"] = ip.data_value_corr(variant, params, hp, held_out,
+                                                                                     cfg.gamma)
     result = {"run": str(run_dir), "variant": cfg.variant, "preset": cfg.preset, "level": cfg.level, "step": step,
               "games": games, "every": every, "horizon": ip.HORIZON, "explore": ip.EXPLORE, "gamma": cfg.gamma,
               "sequences": ip.SEQUENCES, "real_return": f"the plain sum of the real rewards over {ip.HORIZON} steps",
@@ -130,6 +137,7 @@ def summary(result: dict) -> str:
     shown = [k for k in (1, 5, 15) if k <= len(aucs)]
     lines.append(f"reward AUC along straight on at step {' / '.join(map(str, shown))}: "
                  f"{' / '.join(fmt(aucs[k - 1]) for k in shown)}")
-    lines.append(f"value_corr: {fmt(result['value_corr'])} over {result['value_states']} followed states"
-                 if result["value_head"] else "value_corr: none (no value head)")
+    lines.append(f"value_corr: {fmt(result['value_corr'])} over {result['value_states']} followed states, "
+                 f"{fmt(result.get('value_corr_data'))} over {result.get('value_states_data', 0)} of the run's held-out "
+                 "play" if result["value_head"] else "value_corr: none (no value head)")
     return "\n".join(lines)

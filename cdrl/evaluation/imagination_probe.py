@@ -26,7 +26,9 @@ reward head's (`cdrl.training.lookahead`).
 - `value_corr`: the correlation of the value head's V(h_t) on the followed real states with the
   real discounted return from there (`discounted_returns`, γ the run's), None without a value
   head. The return is cut where the followed play stops: the game's end, or its last followed
-  step, within 2 `every` steps of the episode's step limit.
+  step, within 2 `every` steps of the episode's step limit;
+- `value_corr_data` (`data_value_corr`): the same correlation on held-out episodes of the run's
+  own data, whose policy the value was fitted to.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cdrl.data.frames import model_obs
+from cdrl.data.frames import as_float, model_obs
 from cdrl.models.base import StepInput, Variant
 from cdrl.training import lookahead
 
@@ -184,6 +186,35 @@ def followed_branches(variant: Variant, params, game, env_params, hp, *, games: 
     flat = lambda x: np.asarray(x).reshape(games, points * every)  # noqa: E731
     return {**result, "alive": np.asarray(alive), "followed_value": flat(v), "followed_reward": flat(reward),
             "followed_alive": flat(on)}
+
+
+@functools.partial(jax.jit, static_argnames=("variant",))
+def _episode_values(variant: Variant, params, hp, frames, actions):
+    """V(h_t) after every step t of one recorded episode, fed teacher-forced: `[N - 1]`."""
+    n = actions.shape[0]
+    xs = StepInput(obs=frames[:, None], action=actions[:, None], is_first=(jnp.arange(n) == 0)[:, None])
+    _, _, carries = variant.unroll_states(params, variant.init_carry(1), xs)
+    return lookahead.value(params["lookahead"], variant.features(carries), hp)[:, 0]
+
+
+def data_value_corr(variant: Variant, params, hp, episodes, gamma: float) -> tuple[float | None, int]:
+    """The value head's V(h_t) after every step of `episodes` (recorded, fed teacher-forced)
+    against the discounted return of the rewards that follow it, r_{t+1} on, cut at the
+    episode's end: (their correlation over every step of every episode, the steps counted)."""
+    values, returns = [], []
+    for i in range(len(episodes)):
+        ep = episodes[i]
+        n = len(ep.rewards) - 1
+        if n < 1:
+            continue
+        v = _episode_values(variant, params, hp, as_float(jnp.asarray(ep.frames[:n])),
+                            jnp.asarray(ep.actions[:n], jnp.float32))
+        values.append(np.asarray(v))
+        returns.append(discounted_returns(np.asarray(ep.rewards[1:], np.float64), gamma))
+    if not values:
+        return None, 0
+    values, returns = np.concatenate(values), np.concatenate(returns)
+    return corr(values, returns), int(values.size)
 
 
 # --------------------------------------------------------------------------- the scores

@@ -56,6 +56,7 @@ class _RunConfigMethods:
             check_value(f.name, f.type, getattr(self, f.name))
         # The game's package is imported here, not with this module: `cdrl train --distributed`
         # must start jax.distributed before anything touches a JAX backend.
+        from envs.policies import POLICIES
         from envs.slither import LEVELS
 
         curriculum = self.feed_curriculum  # refuses a malformed --multistep
@@ -80,7 +81,8 @@ class _RunConfigMethods:
                              "(reward_prediction or final_proposal, offline or with a learner that keeps a replay "
                              "buffer)")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
-                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "conv": FORMULATIONS}
+                   "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "conv": FORMULATIONS,
+                   "data_policy": ("auto",) + tuple(POLICIES)}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")

@@ -59,7 +59,7 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
     if cfg.data == "game":
         from envs.slither import LEVEL_GAMES
 
-        policy = "uniform" if uses_action else "behaviour"
+        policy = cfg.data_policy if cfg.data_policy != "auto" else "uniform" if uses_action else "behaviour"
         path = cache_root / _cache_name(cfg, policy, cfg.episodes)
         collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
                 max_filter=cfg.arch.max_filter, env_params=game_params(cfg), game_kwargs=LEVEL_GAMES.get(cfg.level, {}))
@@ -150,7 +150,7 @@ def stats_episodes(cfg: RunConfig, cache_root: Path) -> Sequence[Episode]:
     parameters collected with seed 0 (online runs too); synthetic episodes of seed 0."""
     if cfg.data == "game":
         sample = dataclasses.replace(cfg, variant="main", episodes=8, seed=0, reward_balanced_weight=0.0,
-                                     imagined_reward_balanced_weight=0.0, lookahead_steps=0)
+                                     imagined_reward_balanced_weight=0.0, lookahead_steps=0, data_policy="auto")
     elif cfg.data == "synthetic":
         sample = dataclasses.replace(cfg, seed=0)
     else:
