@@ -16,7 +16,7 @@ from cdrl.training.step import chunk_loss, init_state, train_step
 T, B = 7, 2
 
 
-def _chunk(seed=0):
+def _chunk(seed=0, truncated=False):
     k = jax.random.split(jax.random.PRNGKey(seed), 4)
     frames = jax.random.uniform(k[0], (T + 1, B, TINY.image_size, TINY.image_size))
     is_first = np.zeros((T, B), bool)
@@ -25,7 +25,8 @@ def _chunk(seed=0):
     return Chunk(obs=frames[:-1], next_obs=frames[1:],
                  action=(jax.random.uniform(k[1], (T, B, 3)) > 0.5).astype(jnp.float32),
                  reward=jnp.round(jax.random.normal(k[2], (T, B)), 1) * (jax.random.uniform(k[3], (T, B)) > 0.4),
-                 is_first=jnp.asarray(is_first))
+                 is_first=jnp.asarray(is_first),
+                 truncated=jnp.asarray(np.roll(is_first, -1, axis=0) & truncated) if truncated else None)
 
 
 def test_two_hot_puts_its_mass_on_the_two_nearest_bins_and_keeps_the_mean():
@@ -73,6 +74,7 @@ def _by_hand(variant, params, hp, chunk, weights):
     obs = np.asarray(chunk.obs)
     nxt = np.asarray(chunk.next_obs)
     act, rew, first = np.asarray(chunk.action), np.asarray(chunk.reward), np.asarray(chunk.is_first)
+    cut = np.zeros_like(first) if chunk.truncated is None else np.asarray(chunk.truncated)
     carry, carries, preds = variant.init_carry(B), [], []
     for t in range(T):
         carry, out = variant.step(params, carry, StepInput(obs=jnp.asarray(obs[t]), action=jnp.asarray(act[t]),
@@ -85,10 +87,13 @@ def _by_hand(variant, params, hp, chunk, weights):
     for b in range(B):
         ret[T - 1, b] = target_v[T - 1, b]
         for t in reversed(range(T - 1)):
+            if cut[t, b]:  # the step limit ended the episode: the state's own value stands for the next one's
+                ret[t, b] = rew[t, b] + hp.gamma * target_v[t, b]
+                continue
             goes_on = 0.0 if first[t + 1, b] else 1.0
             ret[t, b] = rew[t, b] + hp.gamma * goes_on * ((1 - hp.lam) * target_v[t + 1, b] + hp.lam * ret[t + 1, b])
     # (h, reward target, continuation target or None, return target or None) of every scored state
-    scored = [(real_h[t, b], rew[t, b], None if t == T - 1 else float(not first[t + 1, b]),
+    scored = [(real_h[t, b], rew[t, b], None if t == T - 1 else float(not first[t + 1, b] or cut[t, b]),
                None if t == T - 1 else ret[t, b]) for t in range(T) for b in range(B)]
     imag_bce, imag_mse, imag_sign = [], [], []
     for s in range(0, T, hp.stride):
@@ -107,7 +112,7 @@ def _by_hand(variant, params, hp, chunk, weights):
                 imag_mse.append((float(out["reward"][0]) - rew[i, b]) ** 2)
                 imag_sign.append(np.sign(rew[i, b]) if abs(rew[i, b]) > 1e-6 else 0.0)
                 h = np.asarray(variant.features(c))[0]
-                scored.append((h, rew[i, b], None if i == T - 1 else float(not first[i + 1, b]),
+                scored.append((h, rew[i, b], None if i == T - 1 else float(not first[i + 1, b] or cut[i, b]),
                                None if i == T - 1 else ret[i, b]))
     r_ce, c_bce, v_ce, r_mse, v_mse = [], [], [], [], []
     for h, r, cont, ret_t in scored:
@@ -127,18 +132,21 @@ def _by_hand(variant, params, hp, chunk, weights):
             "value_mse": np.mean(v_mse)}
 
 
-@pytest.mark.parametrize("name,steps,stride", [("reward_prediction", 3, 2), ("final_proposal", 2, 3)])
-def test_every_term_equals_a_plain_loop_over_starts_and_steps(name, steps, stride):
+@pytest.mark.parametrize("name,steps,stride,truncated", [("reward_prediction", 3, 2, False),
+                                                        ("final_proposal", 2, 3, False),
+                                                        ("final_proposal", 3, 2, True)])
+def test_every_term_equals_a_plain_loop_over_starts_and_steps(name, steps, stride, truncated):
     """Imagined steps stop at the chunk's end and at an episode start; the value's targets are
     λ-returns of the target head's values on the real states; the heads score the real steps and
-    every imagined one."""
+    every imagined one. An episode its step limit cut (`truncated`) goes on: its last step
+    bootstraps on its own state's value."""
     variant = make_variant(name, TINY)
     hp = la.LookaheadHParams.create(steps=steps, stride=stride, gamma=0.9, lam=0.8)
     params = la.with_heads(variant, variant.init(jax.random.PRNGKey(3)), jax.random.PRNGKey(4), hp)
     # non-zero heads, and a target copy that differs from the head, so every path counts
     params["lookahead"] = jax.tree.map(lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(x.size), x.shape),
                                        params["lookahead"])
-    chunk = _chunk()
+    chunk = _chunk(truncated=truncated)
     hparams = HParams.create(variant, lookahead=hp)
     _, (_, terms, _) = chunk_loss(variant, params, variant.init_carry(B), hparams, chunk)
     want = _by_hand(variant, params, hp, chunk, hparams.loss_weights)

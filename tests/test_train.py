@@ -178,6 +178,11 @@ def test_chunks_are_aligned_and_mark_episode_starts():
     np.testing.assert_array_equal(first[:10], [1, 0, 0, 1, 0, 0, 0, 0, 1, 0])
     np.testing.assert_array_equal(reward[:3], [1, 2, 3])  # r_{t+1}
     assert first[10]
+    assert not np.concatenate([c.truncated[:, 0] for c in chunks]).any()  # no step limit: every end is the game's
+    # a step limit of 5: the 5-step episode ended at it (its last step is marked), the others in the game
+    limited = ChunkStream(eps, 1, 4, shuffle=False, step_limit=5)
+    truncated = np.concatenate([limited.next_chunk().truncated[:, 0] for _ in range(3)])
+    np.testing.assert_array_equal(truncated[:10], [0, 0, 0, 0, 0, 0, 0, 1, 0, 0])
 
 
 def test_stream_cursor_resumes_exactly():

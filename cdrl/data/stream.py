@@ -29,10 +29,15 @@ class Chunk:
     action: jax.Array  # [T, B, A]: a_t
     reward: jax.Array  # [T, B]: r_{t+1}, received on arriving at o_{t+1}
     is_first: jax.Array  # [T, B] bool
+    # [T, B] bool: o_{t+1} is the last frame of an episode its step limit cut, not the game's end
+    # (a value bootstraps there); None: every episode ended in the game
+    truncated: jax.Array | None = None
 
 
 class ChunkStream:
-    """Yields `Chunk`s of numpy arrays `[T, B, ...]` from an episode source, forever."""
+    """Yields `Chunk`s of numpy arrays `[T, B, ...]` from an episode source, forever. With
+    `step_limit`, an episode of that many steps or more ended at the limit, not in the game:
+    its last step is marked `truncated`."""
 
     def __init__(
         self,
@@ -43,6 +48,7 @@ class ChunkStream:
         action_dim: int = 3,
         seed: int = 0,
         shuffle: bool = True,
+        step_limit: int | None = None,
     ):
         if unroll < 1:
             raise ValueError(f"unroll length T must be >= 1, got {unroll}")
@@ -53,6 +59,7 @@ class ChunkStream:
         self.episodes, self.batch, self.unroll = episodes, batch, unroll
         self.image_size, self.action_dim = image_size, action_dim
         self.seed, self.shuffle = seed, shuffle
+        self.step_limit = step_limit  # an episode of this many steps was cut by the limit
         self.slot = np.arange(batch, dtype=np.int64)  # index into the endless episode order
         self.pos = np.zeros(batch, dtype=np.int64)  # next transition within that episode
         self._perms: dict[int, np.ndarray] = {}
@@ -111,6 +118,7 @@ class ChunkStream:
         action = np.empty((T, B, self.action_dim), np.float32)
         reward = np.empty((T, B), np.float32)
         is_first = np.zeros((T, B), bool)
+        truncated = np.zeros((T, B), bool)
         for b in range(B):
             t = 0
             while t < T:
@@ -126,11 +134,12 @@ class ChunkStream:
                 is_first[t, b] = p == 0
                 t += n
                 if p + n == len(ep) - 1:
+                    truncated[t - 1, b] = self.step_limit is not None and len(ep) - 1 >= self.step_limit
                     self.slot[b] += B
                     self.pos[b] = 0
                 else:
                     self.pos[b] = p + n
-        return Chunk(obs=obs, next_obs=nxt, action=action, reward=reward, is_first=is_first)
+        return Chunk(obs=obs, next_obs=nxt, action=action, reward=reward, is_first=is_first, truncated=truncated)
 
     def __iter__(self):
         while True:

@@ -27,6 +27,7 @@ import numpy as np
 from cdrl.data.stream import Chunk, ChunkStream
 from cdrl.models.base import Variant
 from cdrl.runs.config import RunConfig
+from cdrl.runs.sources import step_limit
 from cdrl.training.loop import Job, LoopResult, Plan, Sink, enter_stage, host_loop, stage_schedule
 from cdrl.training.lookahead import with_heads
 from cdrl.training.monitor import group_names
@@ -137,8 +138,9 @@ def make_streams(cfgs: Sequence[RunConfig], train_eps_of: Callable[[RunConfig], 
     streams = {}
     for c in cfgs:
         if c.seed not in streams:
-            streams[c.seed] = ChunkStream(train_eps_of(c), c.batch, c.unroll, image_size=c.arch.image_size,
-                                          action_dim=c.arch.action_dim, seed=c.seed)
+            episodes = train_eps_of(c)
+            streams[c.seed] = ChunkStream(episodes, c.batch, c.unroll, image_size=c.arch.image_size,
+                                          action_dim=c.arch.action_dim, seed=c.seed, step_limit=step_limit(episodes))
     return streams
 
 

@@ -29,7 +29,7 @@ from cdrl.runs.checkpoint import Checkpoints
 from cdrl.runs.config import RunConfig
 from cdrl.runs.distributed import is_primary, primary_first
 from cdrl.runs.rundir import RunDir
-from cdrl.runs.sources import load_episodes, verify_data, with_data_dims, with_obs_norm
+from cdrl.runs.sources import load_episodes, step_limit, verify_data, with_data_dims, with_obs_norm
 from cdrl.runs.tboard import prediction_image
 from cdrl.runs.record_sinks import run_writer
 from cdrl.training.loop import Plan, TrainJob, host_loop
@@ -108,7 +108,7 @@ def offline_train_run(cfg: RunConfig, run: RunDir, resume: bool, progress: bool 
     train_eps, test_eps, data, cfg = primary_first(prepare, "loading the run's data")
     variant = make_variant(cfg.variant, cfg.arch)
     stream = ChunkStream(train_eps, cfg.batch, cfg.unroll, image_size=cfg.arch.image_size,
-                         action_dim=cfg.arch.action_dim, seed=cfg.seed)
+                         action_dim=cfg.arch.action_dim, seed=cfg.seed, step_limit=step_limit(train_eps))
     state = init_state(variant, jax.random.PRNGKey(cfg.seed), cfg.batch, cfg.hparams(variant))
     if init_params is not None:
         state = state.replace(params=init_params)

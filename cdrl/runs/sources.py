@@ -68,6 +68,15 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
     return store.EpisodeDataset(path, split="train"), store.EpisodeDataset(path, split="test")
 
 
+def step_limit(episodes) -> int | None:
+    """The step limit the episodes were recorded under (a data set's manifest says it), or None:
+    an episode that reached it was cut there, not ended by the game (`ChunkStream`)."""
+    if isinstance(episodes, store.EpisodeDataset):
+        limit = episodes.manifest.get("config", {}).get("max_steps")
+        return None if limit is None else int(limit)
+    return None
+
+
 def data_action_dim(episodes) -> int:
     """Values per action of an episode source: a data set's manifest says it; else the first
     episode's actions."""

@@ -186,28 +186,36 @@ def head_mask(params: dict) -> dict:
 
 
 def lambda_returns(rewards, values, last, gamma, lam, not_done=None):
-    """R_k = r_k + γ d_k ((1 - λ) V_{k+1} + λ R_{k+1}), R_H = `last`: λ-returns of `[H, N]`
+    """R_k = r_k + γ d_k ((1 - λ_k) V_{k+1} + λ_k R_{k+1}), R_H = `last`: λ-returns of `[H, N]`
     rewards with the values V_1 .. V_H after each step; `not_done` d_k (default 1) is 0 where the
-    episode ended with r_k, which then bootstraps nothing."""
+    episode ended with r_k, which then bootstraps nothing; `lam` a number or one per step."""
     not_done = jnp.ones_like(rewards) if not_done is None else jnp.broadcast_to(not_done, rewards.shape)
+    lam = jnp.broadcast_to(lam, rewards.shape)
 
     def body(nxt, x):
-        r, v_next, nd = x
-        ret = r + gamma * nd * ((1.0 - lam) * v_next + lam * nxt)
+        r, v_next, nd, lam_k = x
+        ret = r + gamma * nd * ((1.0 - lam_k) * v_next + lam_k * nxt)
         return ret, ret
 
-    _, rets = jax.lax.scan(body, last, (rewards, values, not_done), reverse=True)
+    _, rets = jax.lax.scan(body, last, (rewards, values, not_done, lam), reverse=True)
     return rets
 
 
-def targets(is_first: jax.Array, rewards: jax.Array, target_values: jax.Array, hp: LookaheadHParams):
+def targets(is_first: jax.Array, rewards: jax.Array, target_values: jax.Array, hp: LookaheadHParams,
+            truncated: jax.Array | None = None):
     """Per real step t of a chunk `[T, B]`: whether the episode goes on after it (`cont`, known
     for t < T - 1), and the λ-return from its state (`ret`, known for t < T - 1: the last step's
     is the bootstrap), with `known` masks for both. `target_values` are the slow head's values
-    after every step."""
-    ended = is_first[1:].astype(jnp.float32)  # o_{t+1} starts a new episode: step t ended one
-    cont = jnp.concatenate([1.0 - ended, jnp.ones_like(ended[:1])])
-    ret = lambda_returns(rewards[:-1], target_values[1:], target_values[-1], hp.gamma, hp.lam, 1.0 - ended)
+    after every step. An episode that a step limit cut (`truncated`, `Chunk.truncated`) goes on
+    in the game: its last step bootstraps on its own state's value, r_{t+1} + γ V(h_t), as the
+    next state's is not in the chunk (Pardo et al. 2018, time limits in RL)."""
+    ended = is_first[1:]  # o_{t+1} starts a new episode: step t ended one
+    cut = ended & truncated[:-1] if truncated is not None else jnp.zeros_like(ended)
+    terminal = (ended & ~cut).astype(jnp.float32)
+    cont = jnp.concatenate([1.0 - terminal, jnp.ones_like(terminal[:1])])
+    v_next = jnp.where(cut, target_values[:-1], target_values[1:])
+    ret = lambda_returns(rewards[:-1], v_next, target_values[-1], hp.gamma, jnp.where(cut, 0.0, hp.lam),
+                         1.0 - terminal)
     ret = jnp.concatenate([ret, target_values[-1:]])
     known = jnp.arange(is_first.shape[0])[:, None] < is_first.shape[0] - 1
     return cont, ret, jnp.broadcast_to(known, is_first.shape)
@@ -256,9 +264,10 @@ def imagine_from(variant: Variant, params, carries, frames, actions):
 
 
 def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInput, outs, carries,
-                    next_obs: jax.Array, rewards: jax.Array) -> dict:
+                    next_obs: jax.Array, rewards: jax.Array, truncated: jax.Array | None = None) -> dict:
     """The look-ahead's terms (`TERMS` and `METRICS`) of one chunk, from its teacher-forced
-    outputs `outs` and the carry after every step `carries` (`[T, B, ...]`)."""
+    outputs `outs` and the carry after every step `carries` (`[T, B, ...]`); `truncated`:
+    `Chunk.truncated`."""
     heads = params["lookahead"]
     bins = hp.bin_values
     steps_t = xs.is_first.shape[0]
@@ -274,7 +283,8 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
              "imag_reward_balanced": balanced_squared_error(imag_r, rewards[index], mask=valid)}
 
     real_h = variant.features(carries)  # [T, B, F]
-    cont, ret, known = targets(xs.is_first, rewards, value(heads, jax.lax.stop_gradient(real_h), hp, target=True), hp)
+    cont, ret, known = targets(xs.is_first, rewards, value(heads, jax.lax.stop_gradient(real_h), hp, target=True), hp,
+                               truncated)
     ret = jax.lax.stop_gradient(ret)
     # The heads see the real steps [T, B] and the imagined ones [S * K, B], side by side.
     h = scale_grad(jnp.concatenate([real_h, imag_h.reshape((-1,) + imag_h.shape[2:])]), hp.head_grad)

@@ -121,7 +121,7 @@ def chunk_loss(variant: Variant, params, carry, hp: HParams, chunk: Chunk):
     terms = variant.loss_terms(params, xs, outs, next_obs, chunk.reward)
     if hp.lookahead is not None:
         terms.update(lookahead.lookahead_terms(variant, params, hp.lookahead, xs, outs, carries, next_obs,
-                                               chunk.reward))
+                                               chunk.reward, chunk.truncated))
     missing = set(terms) ^ set(hp.loss_weights)
     if missing:
         raise ValueError(f"loss weights and terms differ for {variant.name!r}: {sorted(missing)}")
