@@ -201,15 +201,15 @@ def data_value_corr(variant: Variant, params, hp, episodes, gamma: float) -> tup
     """The value head's V(h_t) after every step of `episodes` (recorded, fed teacher-forced)
     against the discounted return of the rewards that follow it, r_{t+1} on, cut at the
     episode's end: (their correlation over every step of every episode, the steps counted)."""
+    eps = [episodes[i] for i in range(len(episodes)) if len(episodes[i].rewards) > 1]
+    longest = max((len(ep.rewards) - 1 for ep in eps), default=0)
     values, returns = [], []
-    for i in range(len(episodes)):
-        ep = episodes[i]
+    for ep in eps:  # each padded to the longest: one compiled program; the unroll is causal
         n = len(ep.rewards) - 1
-        if n < 1:
-            continue
-        v = _episode_values(variant, params, hp, as_float(jnp.asarray(ep.frames[:n])),
-                            jnp.asarray(ep.actions[:n], jnp.float32))
-        values.append(np.asarray(v))
+        pad = lambda x: np.concatenate([x[:n], np.zeros((longest - n,) + x.shape[1:], x.dtype)])  # noqa: E731
+        v = _episode_values(variant, params, hp, as_float(jnp.asarray(pad(np.asarray(ep.frames)))),
+                            jnp.asarray(pad(np.asarray(ep.actions, np.float32))))
+        values.append(np.asarray(v)[:n])
         returns.append(discounted_returns(np.asarray(ep.rewards[1:], np.float64), gamma))
     if not values:
         return None, 0
