@@ -52,7 +52,8 @@ def config_of(name: str, args, seed: int):
     return RunConfig(variant=args.variant, learner="world_model", preset="small", max_filter=args.max_filter,
                      level=args.level, steps=args.steps, seed=seed, eval_every=max(1, args.steps // 2),
                      checkpoint_every=max(1, args.steps // 2), tensorboard=False, head_grad=args.head_grad,
-                     grad_clip=args.grad_clip, data_policy=args.data_policy, mirror_streams=args.mirror_streams,
+                     grad_clip=args.grad_clip, gamma=args.gamma, episodes=args.data_episodes,
+                     data_policy=args.data_policy, mirror_streams=args.mirror_streams,
                      **options_of(name, args))
 
 
@@ -93,8 +94,10 @@ def main(argv=None) -> int:
     parser.add_argument("--head-grad", type=float, default=0.01)
     parser.add_argument("--balanced", type=float, default=0.003, help="full_bal, full_bal_imag: the balanced weight")
     parser.add_argument("--grad-clip", type=float, default=0.0, help="the model's global gradient norm clip (0: none)")
+    parser.add_argument("--gamma", type=float, default=0.99, help="the value's discount (cdrl's --gamma)")
     parser.add_argument("--data-policy", default="auto", help="the policy that plays the data (cdrl's --data-policy)")
     parser.add_argument("--mirror-streams", action="store_true", help="half of the streams see their episodes mirrored")
+    parser.add_argument("--data-episodes", type=int, default=60, help="episodes the data set holds (cdrl's --episodes)")
     parser.add_argument("--episodes", type=int, default=6, help="held-out episodes scored open loop")
     parser.add_argument("--games", type=int, default=32, help="games of the imagination probe")
     parser.add_argument("--train-only", action="store_true", help="train (or resume) the runs, measure nothing")
@@ -107,7 +110,8 @@ def main(argv=None) -> int:
     result = {"experiment": "lookahead_study", "variant": args.variant, "preset": "small",
               "max_filter": args.max_filter, "level": args.level, "steps": args.steps,
               "lookahead_steps": args.lookahead_steps, "head_grad": args.head_grad, "grad_clip": args.grad_clip,
-              "data_policy": args.data_policy, "mirror_streams": args.mirror_streams, "configs": {}}
+              "gamma": args.gamma, "data_episodes": args.data_episodes, "data_policy": args.data_policy,
+              "mirror_streams": args.mirror_streams, "configs": {}}
     for name in args.configs:
         rows = {}
         for seed in args.seeds:
