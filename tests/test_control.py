@@ -386,6 +386,18 @@ def test_the_imagination_comparison_shares_its_world_models_pre_training(imagine
         assert (a.variant, a.learner, b.learner) == (b.variant, "imagination_ac", "onpolicy_ac")
 
 
+def test_the_clipped_planner_keeps_its_world_models_training_online():
+    """`plan-pre-clip`'s world model learns online as it was pre-trained: the same look-ahead,
+    clip, heads' gradient, discount and balanced reward weights, read back from both configs."""
+    budget = study.BUDGETS["full"]
+    pre, online = study.pretrain_config("plan-pre-clip", budget, 0), study.config_of("plan-pre-clip", budget, 0)
+    fields = ("lookahead_steps", "head_grad", "grad_clip", "gamma", "reward_balanced_weight",
+              "imagined_reward_balanced_weight")
+    expected = [3, 1e-3, 0.05, 0.9, 0.003, 0.003]
+    assert [getattr(pre, f) for f in fields] == [getattr(online, f) for f in fields] == expected
+    assert (pre.learner, online.learner, online.horizon) == ("world_model", "mpc_planner", 5)
+
+
 def _seed_result(ret, references, length=180.0):
     return {"return": ret, "length": length, "frames": 96, "curve": [[48, ret - 1.0], [96, ret]],
             "references": references, "excess_ratio_held_out": 0.5 + ret / 10,

@@ -30,6 +30,7 @@ greedy buttons. The reference policies play the same games once: they do not lea
   plan-pre      model-predictive control (`--learner mpc_planner`, 5-step plans, the value at the end)
                 on a world model pre-trained with the look-ahead heads (`--lookahead-steps 3`)
   plan-pre-bal  the same, its pre-training also teaching the balanced reward (as `-bal` above)
+  plan-pre-clip  the same on the world model's best look-ahead training (clipped, value at gamma 0.9)
   plan-pre-bal-mirror  the same, half of its pre-training's streams seen in a mirror (`--mirror-streams`)
   imagine-look-pre-bal, critic-look-pre-bal  `imagine` and `critic` on `plan-pre-bal`'s world model
                 (5 imagined steps and the value head's value at the end)
@@ -98,6 +99,11 @@ LOOK = {"horizon": 5, "lookahead_steps": 3, "head_grad": 1e-4}
 LOOK_PRETRAIN = {"lookahead_steps": 3, "head_grad": 1e-4}
 LOOK_PRETRAIN_BAL = {"variant": "final_proposal", "learner": "world_model", **LOOK_PRETRAIN,
                      "reward_balanced_weight": 0.003}
+# The world model's best look-ahead training (experiments/world_models/LOG.md): the balanced reward
+# on the real and imagined steps, the model's gradient norm clipped at 0.05, the heads' gradient
+# into it at 1e-3, and a value discounted at 0.9 (about the 15 steps a plan is judged over).
+LOOK_CLIP = {"lookahead_steps": 3, "head_grad": 1e-3, "grad_clip": 0.05, "gamma": 0.9,
+             "reward_balanced_weight": 0.003, "imagined_reward_balanced_weight": 0.003}
 
 # name -> options of the run (RunConfig fields) besides the budget's; `frames_factor` scales
 # the budget's game frames; `pretrain` first trains the world model offline for the budget's
@@ -137,6 +143,9 @@ CONFIGS: dict[str, dict] = {
                      "warmup_steps": 0, "pretrain": LOOK_PRETRAIN_BAL},
     "plan-pre-bal-mirror": {"variant": "final_proposal", "learner": "mpc_planner", **LOOK, "noise_std": 0.1,
                             "warmup_steps": 0, "pretrain": {**LOOK_PRETRAIN_BAL, "mirror_streams": True}},
+    "plan-pre-clip": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 5, **LOOK_CLIP,
+                      "noise_std": 0.1, "warmup_steps": 0,
+                      "pretrain": {"variant": "final_proposal", "learner": "world_model", **LOOK_CLIP}},
     "imagine-look-pre-bal": {"variant": "final_proposal", "learner": "imagined_ascent", **LOOK,
                              "pretrain": LOOK_PRETRAIN_BAL},
     "critic-look-pre-bal": {"variant": "final_proposal", "learner": "imagination_ac", **LOOK,
