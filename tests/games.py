@@ -21,6 +21,18 @@ class LeftBonusSlither(Slither):
         return state, reward + (pressed[1] & ~pressed[0]), terminated, truncated, info
 
 
+class TurnOneSlither(Slither):
+    """The test game without its rewards or an end: 1 for every step that presses turn button 1
+    alone, else 0. From any state, holding turn button 1 for k steps returns k, the other
+    sequences 0 (the imagination probe's steering sequences)."""
+
+    def step_state(self, key, state, action, params=None):
+        state, _, _, _, info = super().step_state(key, state, action, params)
+        pressed = jnp.asarray(action) > 0.5
+        never = jnp.array(False)
+        return state, (pressed[1] & ~pressed[0]).astype(jnp.float32), never, never, info
+
+
 @functools.cache
 def test_game():
     """(game, params): 2 opponents, 16 segments, a 1000-pixel arena, episodes cut at 40 steps."""

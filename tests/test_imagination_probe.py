@@ -20,7 +20,6 @@ from cdrl.models.base import StepInput
 from cdrl.models.controller import FinalProposal
 from cdrl.training import lookahead as la
 from envs.policies import privileged_policy
-from envs.slither import Slither
 
 
 def _rewards(seed, starts=200, horizon=6):
@@ -113,20 +112,8 @@ def test_the_sequences_are_three_ways_to_steer_without_accelerating_then_one_tha
     assert len({tuple(b) for b in buttons[:ip.STEER, :2]}) == 3
 
 
-class TurnOneSlither(Slither):
-    """The test game without its rewards or an end: 1 for every step that presses turn button 1
-    alone, else 0. From any state, holding turn button 1 for k steps returns k, the other
-    sequences 0."""
-
-    def step_state(self, key, state, action, params=None):
-        state, _, _, _, info = super().step_state(key, state, action, params)
-        pressed = jnp.asarray(action) > 0.5
-        never = jnp.array(False)
-        return state, (pressed[1] & ~pressed[0]).astype(jnp.float32), never, never, info
-
-
 class Oracle(FinalProposal):
-    """final_proposal whose imagined reward is `params["oracle"]` times `TurnOneSlither`'s reward
+    """final_proposal whose imagined reward is `params["oracle"]` times `games.TurnOneSlither`'s reward
     plus (1 - it) times 0.3: the game's own reward at 1, a constant at 0 (one program for both)."""
 
     def imagine_step(self, params, carry, frame, action):
@@ -137,13 +124,13 @@ class Oracle(FinalProposal):
 
 def _turn_one():
     _, env_params = games.test_game()
-    game = TurnOneSlither(**games.SIZES)
+    game = games.TurnOneSlither(**games.SIZES)
     variant = Oracle(TINY)
     return game, env_params, variant, variant.init(jax.random.PRNGKey(0))
 
 
 def test_an_oracle_names_the_real_best_at_every_start_and_a_constant_at_a_third():
-    """On `TurnOneSlither`, turn1 is the real best from every state. An imagination whose rewards
+    """On `games.TurnOneSlither`, turn1 is the real best from every state. An imagination whose rewards
     are the game's ranks it first at every start, its returns correlate 1 with the real ones and
     its rewards tell a pellet (a rewarded step) from none perfectly. A constant imagination has no
     correlation and ties three ways: a third of a vote at every start."""

@@ -155,3 +155,27 @@ def test_the_imagined_actor_critic_ends_its_returns_on_the_look_ahead_value():
     for k in reversed(range(3)):
         ret = rewards[k] + float(hp.gamma) * ((1 - float(hp.lam)) * values[k] + float(hp.lam) * ret)
     assert float(terms["imagined_return"]) == pytest.approx(float(np.mean(ret)), rel=1e-4, abs=1e-5)
+
+
+def test_the_oracle_planner_presses_what_the_true_game_rewards():
+    """With the true game as its model, the planner holds turn1 alone on `games.TurnOneSlither`
+    (the only rewarded buttons; a tie goes to the first combination, so turn1 without
+    accelerating), whatever its value's policy; on the left-bonus game it beats uniform random."""
+    from cdrl.learners.mpc_planner import oracle_planner
+    from envs.policies import get_policy
+
+    _, env_params = games.test_game()
+    turn_one = games.TurnOneSlither(**games.SIZES)
+    oracle = oracle_planner(turn_one, get_policy("behaviour"), GAMMA, 2, samples=2, steps=3)
+    _, state = turn_one.reset(jax.random.PRNGKey(0), env_params)
+    for t in range(3):
+        buttons, _ = jax.jit(oracle.step)(jax.random.PRNGKey(t), None, None, state, env_params)
+        np.testing.assert_array_equal(buttons, [0.0, 1.0, 0.0])
+        state = turn_one.step_state(jax.random.PRNGKey(10 + t), state, jnp.asarray([1.0, 0.0, 0.0]), env_params)[0]
+
+    g, params = games.left_bonus_game()
+    oracle = oracle_planner(g, get_policy("never_accelerate"), GAMMA, 2, samples=2, steps=3)
+    planned = play.summarize(*play.play(g, params, oracle.init, oracle.step, SEEDS, games.MAX_STEPS, privileged=True))
+    uniform = get_policy("uniform")
+    random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
+    assert planned["ci95"][0] > random["ci95"][1], (planned, random)

@@ -23,6 +23,7 @@ from cdrl.learners.game_batch import Observation
 from cdrl.learners.imagination import imagination_config, imagined_return
 from cdrl.learners.replay_base import BUTTON_COMBOS, ReplayLearner, ReplayState, draw_buttons
 from cdrl.models.base import StepInput, Variant
+from envs.policies import Policy, uniform_init
 
 # A tie between plans (an untrained model scores every plan alike) is broken at random.
 JITTER = 1e-6
@@ -73,6 +74,37 @@ def planner_fns(variant: Variant, horizon: int):
                                     "scores": scores}
 
     return init, step
+
+
+def oracle_planner(game, policy: Policy, gamma: float, horizon: int, *, samples: int = 4, steps: int = 30) -> Policy:
+    """The planner with a perfect model and a perfect value of `policy`, as a privileged policy
+    (its step reads the game's state; `cdrl.evaluation.play`). Each step it holds every button
+    combination `horizon` steps in the true game, adds γ^horizon times `policy`'s value there
+    (`probe_ceiling.policy_value`, `samples` plays of `steps` steps) and presses the best plan's
+    first buttons at once (no step of delay; a tie goes to the first combination, straight on).
+    The plans of one step share their keys. It bounds what `MPCPlanner` can reach with a value
+    of `policy`: the model and the value are the only things it replaces."""
+    from cdrl.evaluation.probe_ceiling import policy_value
+
+    combos = jnp.asarray(BUTTON_COMBOS)
+    discounts = gamma ** jnp.arange(horizon, dtype=jnp.float32)
+
+    def step(key, ps, obs, state, env_params):
+        del obs
+        k_plan, k_value = jax.random.split(key)
+
+        def held(c, k):
+            s, on = c
+            s, reward, term, trunc, _ = jax.vmap(game.step_state, (None, 0, 0, None))(k, s, combos, env_params)
+            return (s, on & ~(term | trunc)), reward * on
+
+        states = jax.tree.map(lambda x: jnp.broadcast_to(x, combos.shape[:1] + x.shape), state)
+        (ends, on), rewards = jax.lax.scan(held, (states, jnp.ones(combos.shape[0], bool)),
+                                           jax.random.split(k_plan, horizon))
+        value = policy_value(game, env_params, policy, gamma, k_value, ends, on, samples=samples, steps=steps)
+        return combos[jnp.argmax(discounts @ rewards + gamma ** horizon * value)], ps
+
+    return Policy(f"oracle_planner({policy.name}, H {horizon})", uniform_init, step, privileged=True)
 
 
 class MPCPlanner(ReplayLearner):

@@ -1,0 +1,66 @@
+"""How well could a perfect model and a perfect value rank the steering in the imagination probe?
+
+For each continuation policy and discount: `cdrl.evaluation.probe_ceiling.ceiling` on the probe's
+own starts (32 games from seed 20000, a start every 10 steps of 200). A sequence is scored by
+its real first H rewards, then also plus γ^H times the policy's value after them (the mean of
+`--samples` played continuations of `--steps` steps). The answer bounds every world model whose
+value is fitted to that policy's returns.
+
+    .venv/bin/python experiments/world_models/ceiling_study.py [--level turned]
+        [--policies uniform privileged] [--gammas 0.9] [--samples 8] [--steps 50] [--out FILE]
+
+Ends with one JSON line.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+if not __package__:  # run as a file, not with -m: the repository root on the path (benchmarks/, experiments/)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import emit  # noqa: E402
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--level", default="turned")
+    parser.add_argument("--policies", nargs="+", default=["uniform", "held_uniform", "behaviour", "never_accelerate",
+                                                          "privileged"])
+    parser.add_argument("--gammas", type=float, nargs="+", default=[0.9])
+    parser.add_argument("--samples", type=int, default=8, help="continuations averaged into each value")
+    parser.add_argument("--steps", type=int, default=50, help="steps of each continuation")
+    parser.add_argument("--games", type=int, default=32)
+    parser.add_argument("--episode-steps", type=int, default=200, help="the games' step limit (the runs')")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    import numpy as np
+
+    from cdrl.evaluation import imagination_probe as ip
+    from cdrl.evaluation.probe_ceiling import ceiling
+    from envs.slither import level_game, level_params
+
+    game = level_game(args.level)
+    env_params = level_params(args.level).replace(max_steps=np.asarray(args.episode_steps, np.int32))
+    result = {"experiment": "ceiling_study", "level": args.level, "games": args.games, "every": 10,
+              "horizon": ip.HORIZON, "explore": ip.EXPLORE, "episode_steps": args.episode_steps,
+              "samples": args.samples, "steps": args.steps, "rows": []}
+    for gamma in args.gammas:
+        for policy in args.policies:
+            start = time.perf_counter()
+            row = ceiling(game, env_params, policy, gamma, max_steps=args.episode_steps, games=args.games,
+                          samples=args.samples, steps=args.steps)
+            row["seconds"] = round(time.perf_counter() - start, 1)
+            result["rows"].append(row)
+            agree = " / ".join(f"{row['with_value'][h]['best_steer_agree']:.2f}" for h in row["with_value"])
+            alone = " / ".join(f"{row['rewards_only'][h]['best_steer_agree']:.2f}" for h in row["rewards_only"])
+            print(f"{policy:>16} γ {gamma}: agree with value H {'/'.join(row['with_value'])} {agree}; "
+                  f"rewards only {alone}; straight {row['with_value']['1']['always_straight_agree']:.2f} "
+                  f"({row['seconds']} s)", file=sys.stderr, flush=True)
+    emit(result, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
