@@ -93,3 +93,20 @@ def test_bad_options_are_refused_by_name(options, says):
     g, env_params = games.test_game()
     with pytest.raises(ValueError, match=says):
         pc.ceiling(g, env_params, "behaviour", 0.9, max_steps=games.MAX_STEPS, **options)
+
+
+def test_the_attribution_swaps_one_half_at_a_time():
+    """`model` is the probe's `by_horizon`; `game` ranks by the real rewards plus the played
+    value; where the model imagines the real rewards, swapping them in changes nothing."""
+    rng = np.random.default_rng(0)
+    n, seqs, horizon, gamma, hs = 50, len(ip.SEQUENCES), 6, 0.8, (1, 3)
+    real, imagined, values = (rng.choice([0.0, 0.5, -0.25], size=(n, seqs, horizon)) for _ in range(3))
+    played = rng.normal(size=(n, len(hs), seqs))
+    got = pc.attribution(imagined, values, real, played, gamma, hs)
+    assert got["model"] == ip.horizon_scores(real, imagined, values, gamma, hs)
+    for i, h in enumerate(hs):
+        by_hand = ip.rank_scores(real.sum(-1), real[..., :h].sum(-1) + gamma ** h * played[:, i])
+        assert got["game"][str(h)] == by_hand
+    same = pc.attribution(real, values, real, played, gamma, hs)
+    assert same["model"] == same["game_rewards"] and same["game_value"] == same["game"]
+    assert same["model"] != same["game"]

@@ -158,3 +158,24 @@ def ceiling(game, env_params, policy: str | Policy, gamma: float, *, max_steps: 
         out["with_value"][str(h)] = ip.rank_scores(total, first + gamma ** h * values[:, i])
         out["mean_value"][str(h)] = values[:, i].mean(0).tolist()
     return out
+
+
+def attribution(imagined: np.ndarray, values: np.ndarray, real: np.ndarray, played: np.ndarray, gamma: float,
+                horizons=CEILING_HORIZONS) -> dict:
+    """Which half of a model's look-ahead loses the ranking: per H in `horizons`, the probe's
+    `ip.rank_scores` with a sequence scored by H rewards plus γ^H times a value at step H, each
+    half the model's or the game's. From the probe's arrays on its starts (`imagined`, `real`
+    `[N, sequences, horizon]` rewards, `values` `[N, sequences, horizon]` the model's value after
+    each step) and `played` `[N, len(horizons), sequences]` (the played-out value, `branches`):
+    `model` (both the model's: the probe's `by_horizon`), `game_rewards` (the game's rewards,
+    the model's value), `game_value` (the model's rewards, the played-out value) and `game`
+    (both the game's: `ceiling`'s `with_value`)."""
+    total = real.sum(-1)
+    out = {name: {} for name in ("model", "game_rewards", "game_value", "game")}
+    for i, h in enumerate(horizons):
+        rewards = {"model": imagined[..., :h].sum(-1), "game": real[..., :h].sum(-1)}
+        value = {"model": values[..., h - 1], "game": played[:, i]}
+        for name, (r, v) in {"model": ("model", "model"), "game_rewards": ("game", "model"),
+                             "game_value": ("model", "game"), "game": ("game", "game")}.items():
+            out[name][str(h)] = ip.rank_scores(total, rewards[r] + gamma ** h * value[v])
+    return out

@@ -47,6 +47,14 @@ def _cache_name(cfg: RunConfig, policy: str, episodes: int) -> str:
             f"{game}")
 
 
+def data_policy(cfg: RunConfig) -> str:
+    """The policy that plays the run's built-in-game data: `cfg.data_policy`, or for 'auto' the
+    thesis's choice (uniform buttons for a variant that takes actions, else behaviour switching)."""
+    if cfg.data_policy != "auto":
+        return cfg.data_policy
+    return "uniform" if make_variant(cfg.variant, cfg.arch).uses_action else "behaviour"
+
+
 def load_episodes(cfg: RunConfig, cache_root: Path):
     """(train, test) episode sources for the run."""
     size = cfg.arch.image_size
@@ -59,7 +67,7 @@ def load_episodes(cfg: RunConfig, cache_root: Path):
     if cfg.data == "game":
         from envs.slither import LEVEL_GAMES
 
-        policy = cfg.data_policy if cfg.data_policy != "auto" else "uniform" if uses_action else "behaviour"
+        policy = data_policy(cfg)
         path = cache_root / _cache_name(cfg, policy, cfg.episodes)
         collect(path, cfg.episodes, policy=policy, seed=cfg.seed, max_steps=cfg.episode_steps, obs_size=size,
                 max_filter=cfg.arch.max_filter, env_params=game_params(cfg), game_kwargs=LEVEL_GAMES.get(cfg.level, {}))
