@@ -168,8 +168,9 @@ def test_the_oracle_planner_presses_what_the_true_game_rewards():
     turn_one = games.TurnOneSlither(**games.SIZES)
     oracle = oracle_planner(turn_one, get_policy("behaviour"), GAMMA, 2, samples=2, steps=3)
     _, state = turn_one.reset(jax.random.PRNGKey(0), env_params)
+    act = jax.jit(oracle.step)
     for t in range(3):
-        buttons, _ = jax.jit(oracle.step)(jax.random.PRNGKey(t), None, None, state, env_params)
+        buttons, _ = act(jax.random.PRNGKey(t), None, None, state, env_params)
         np.testing.assert_array_equal(buttons, [0.0, 1.0, 0.0])
         state = turn_one.step_state(jax.random.PRNGKey(10 + t), state, jnp.asarray([1.0, 0.0, 0.0]), env_params)[0]
 

@@ -23,7 +23,6 @@ from cdrl.learners.game_batch import Observation
 from cdrl.learners.imagination import imagination_config, imagined_return
 from cdrl.learners.replay_base import BUTTON_COMBOS, ReplayLearner, ReplayState, draw_buttons
 from cdrl.models.base import StepInput, Variant
-from envs.policies import Policy, uniform_init
 
 # A tie between plans (an untrained model scores every plan alike) is broken at random.
 JITTER = 1e-6
@@ -76,7 +75,7 @@ def planner_fns(variant: Variant, horizon: int):
     return init, step
 
 
-def oracle_planner(game, policy: Policy, gamma: float, horizon: int, *, samples: int = 4, steps: int = 30) -> Policy:
+def oracle_planner(game, policy, gamma: float, horizon: int, *, samples: int = 4, steps: int = 30):
     """The planner with a perfect model and a perfect value of `policy`, as a privileged policy
     (its step reads the game's state; `cdrl.evaluation.play`). Each step it holds every button
     combination `horizon` steps in the true game, adds γ^horizon times `policy`'s value there
@@ -85,6 +84,8 @@ def oracle_planner(game, policy: Policy, gamma: float, horizon: int, *, samples:
     The plans of one step share their keys. It bounds what `MPCPlanner` can reach with a value
     of `policy`: the model and the value are the only things it replaces."""
     from cdrl.evaluation.probe_ceiling import policy_value
+    from envs.policies import Policy, uniform_init  # not at import: its module makes arrays, and
+    # `cdrl train` must reach `jax.distributed.initialize` before the backend starts
 
     combos = jnp.asarray(BUTTON_COMBOS)
     discounts = gamma ** jnp.arange(horizon, dtype=jnp.float32)
