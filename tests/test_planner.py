@@ -15,7 +15,7 @@ from cdrl.learners import LEARNERS
 from cdrl.learners import replay_base as rb
 from cdrl.learners.api import train_program
 from cdrl.learners.imagination import ImaginationConfig
-from cdrl.learners.mpc_planner import plan, planner_fns
+from cdrl.learners.mpc_planner import JITTER, plan, planner_fns
 from cdrl.models import TINY, StepInput, make_variant
 from cdrl.training import lookahead as la
 from cdrl.training.optim import HParams, OptHParams
@@ -33,14 +33,16 @@ def _np_expected(p, h, bins):
     return np.sign(m) * np.expm1(np.abs(m))
 
 
-def _by_hand(variant, look, params, carry, frame):
-    """[B, 8]: every button combination held for HORIZON steps, step by step in Python."""
-    scores = np.zeros((frame.shape[0], 8))
+def _by_hand(variant, look, params, carry, x):
+    """[B, 8]: every button combination pressed with the frames of `x` and held HORIZON - 1
+    imagined steps more, step by step in Python."""
+    scores = np.zeros((x.obs.shape[0], 8))
     for c, buttons in enumerate(itertools.product((0.0, 1.0), repeat=3)):
-        action = jnp.broadcast_to(jnp.asarray(buttons, jnp.float32), (frame.shape[0], 3))
-        cr, fr = carry, frame
+        action = jnp.broadcast_to(jnp.asarray(buttons, jnp.float32), (x.obs.shape[0], 3))
+        cr, out = variant.step(params, carry, StepInput(obs=x.obs, action=action, is_first=x.is_first))
         for k in range(HORIZON):
-            cr, out = variant.imagine_step(params, cr, fr, action)
+            if k:
+                cr, out = variant.imagine_step(params, cr, fr, action)
             fr = jax.nn.sigmoid(out["logits"]) if "logits" in out else fr
             h = np.asarray(variant.features(cr))
             r = np.asarray(out["reward"]) if look is None else _np_expected(params["lookahead"]["reward"], h,
@@ -53,7 +55,9 @@ def _by_hand(variant, look, params, carry, frame):
 
 @pytest.mark.parametrize("name, heads", [("final_proposal", True), ("final_proposal", False),
                                          ("reward_prediction", True)])
-def test_the_plans_scores_are_the_held_buttons_imagined_returns_plus_the_value(name, heads):
+def test_the_plans_scores_are_the_held_buttons_predicted_returns_plus_the_value(name, heads):
+    """A plan's score: its buttons pressed with the real frame (the model's real step from the
+    state before it), held through the imagined steps after; the best plan's buttons press now."""
     variant = make_variant(name, TINY)
     look = la.LookaheadHParams.create(steps=2) if heads else None
     key = jax.random.PRNGKey(0)
@@ -62,13 +66,13 @@ def test_the_plans_scores_are_the_held_buttons_imagined_returns_plus_the_value(n
         for i, head in enumerate(("reward", "value")):
             p = params["lookahead"][head]["dense1"]
             p["kernel"] = 0.3 * jax.random.normal(jax.random.PRNGKey(i + 1), p["kernel"].shape)
-    frames = jax.random.uniform(jax.random.PRNGKey(5), (1, B, TINY.image_size, TINY.image_size))
+    frames = jax.random.uniform(jax.random.PRNGKey(5), (2, B, TINY.image_size, TINY.image_size))
     x = StepInput(obs=frames[0], action=jnp.asarray([[1.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
                   is_first=jnp.ones((B,), bool))
-    carry, out = variant.step(params, variant.init_carry(B), x)
-    frame = jax.nn.sigmoid(out["logits"])
-    scores, best = plan(variant, look, params, carry, frame, jnp.float32(GAMMA), HORIZON, jax.random.PRNGKey(9))
-    expected = _by_hand(variant, look, params, carry, frame)
+    carry, _ = variant.step(params, variant.init_carry(B), x)
+    x = StepInput(obs=frames[1], action=jnp.zeros((B, 3)), is_first=jnp.asarray([False, True]))
+    scores, best = plan(variant, look, params, carry, x, jnp.float32(GAMMA), HORIZON, jax.random.PRNGKey(9))
+    expected = _by_hand(variant, look, params, carry, x)
     np.testing.assert_allclose(np.asarray(scores), expected, rtol=2e-4, atol=2e-5)
     assert np.ptp(expected, axis=1).min() > 1e-3  # the plans differ, so the choice below means something
     np.testing.assert_array_equal(np.asarray(best), rb.BUTTON_COMBOS[expected.argmax(axis=1)])
@@ -104,7 +108,7 @@ def test_a_learner_that_looks_ahead_learns_the_left_bonus(name, updates):
 def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
     """`cdrl eval --policy --video`'s recorder plays the game `play` plays for the same seed
     (same return and length), keeps the screen, the view and the planner's scores, and the
-    buttons it pressed are the best plan's of the step before; the GIF has a frame a step."""
+    buttons it pressed are the best plan's of the same step; the GIF has a frame a step."""
     from PIL import Image
 
     from cdrl.analysis.animation import write_gif
@@ -122,9 +126,9 @@ def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
     assert game["screen"].shape == (n, 300, 500, 3) and game["screen"].dtype == np.uint8
     assert game["view"].shape == (n, TINY.image_size, TINY.image_size) and game["scores"].shape == (n, 8)
     top2 = np.sort(game["scores"], axis=1)[:, -2:]
-    clear = np.flatnonzero(top2[:-1, 1] - top2[:-1, 0] > 1e-4)  # no tie the planner's jitter breaks
+    clear = np.flatnonzero(top2[:, 1] - top2[:, 0] > 2 * JITTER)  # no tie the planner's jitter breaks
     assert clear.size > n // 2
-    np.testing.assert_array_equal(game["action"][clear + 1], rb.BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
+    np.testing.assert_array_equal(game["action"][clear], rb.BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
     path = write_gif(frame_images(game, "test"), tmp_path / "game.gif", 100)
     assert Image.open(path).n_frames == n
 

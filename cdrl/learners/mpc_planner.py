@@ -1,10 +1,12 @@
 """`mpc_planner`: model-predictive control through the world model (TD-MPC2's planning, with
 the buttons' eight combinations as the candidates).
 
-Each step, from the model's state after the real frame, every candidate plan is imagined
-`horizon` steps: one of the eight button combinations held throughout. A plan's score is its
-imagined discounted return plus the discounted value at its end (`imagined_return`). The
-buttons executed next are the best plan's first, each drawn uniformly with the exploration ε.
+Each step, from the model's state before the real frame o_t, every candidate plan is scored: one
+of the eight button combinations pressed with o_t (the model's real step) and held `horizon` − 1
+imagined steps more. A plan's score is its discounted return, as the model predicts it, plus the
+discounted value at its end (`imagined_return`). The buttons pressed at t are the best plan's,
+each drawn uniformly with the exploration ε. There is no step of delay: the planner sees o_t
+before it chooses a_t.
 
 The world model learns from the replay buffer as every replay learner's does. With the
 look-ahead (`--lookahead-steps K`) its reward head scores the imagined steps and its value
@@ -28,15 +30,17 @@ from cdrl.models.base import StepInput, Variant
 JITTER = 1e-6
 
 
-def plan(variant: Variant, look, params, carry, frame, gamma, horizon: int, key):
-    """Every candidate plan from the model's state `carry` (B games), the first fed frame
-    `frame` `[B, H, W]` (the model's prediction of the next one). Returns the plans' scores
-    `[B, C]` (C = 8: `BUTTON_COMBOS`, each held for `horizon` steps) and the best plan's first
-    buttons `[B, A]`. `look`: the look-ahead's numbers (`LookaheadHParams`) or None."""
-    b = frame.shape[0]
+def plan_rollouts(variant: Variant, params, carry, x: StepInput, horizon: int):
+    """Every candidate plan for the real step `x` (B games: the frames o_t, `is_first`; its
+    action is ignored) from the model's state `carry` before it. A plan is one of the eight
+    button combinations (`BUTTON_COMBOS`) pressed at t with o_t and held `horizon` − 1 imagined
+    steps more. Returns the variant's rewards `[C, H, B]` and the states' features
+    `[C, H, B, F]` after each of a plan's steps."""
+    b = x.obs.shape[0]
 
     def rollout(buttons):
         action = jnp.broadcast_to(buttons, (b, buttons.shape[-1]))
+        first, out = variant.step(params, carry, x.replace(action=action))
 
         def body(c, _):
             carry, frame = c
@@ -44,10 +48,19 @@ def plan(variant: Variant, look, params, carry, frame, gamma, horizon: int, key)
             frame = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
             return (carry, frame), (out["reward"], variant.features(carry))
 
-        _, (rewards, h) = jax.lax.scan(body, (carry, frame), None, length=horizon)
-        return imagined_return(look, params, rewards, h, gamma)
+        _, (rewards, h) = jax.lax.scan(body, (first, jax.nn.sigmoid(out["logits"])), None, length=horizon - 1)
+        return (jnp.concatenate([out["reward"][None], rewards]),
+                jnp.concatenate([variant.features(first)[None], h]))
 
-    scores = jax.vmap(rollout)(jnp.asarray(BUTTON_COMBOS)).T  # [B, C]
+    return jax.vmap(rollout)(jnp.asarray(BUTTON_COMBOS))
+
+
+def plan(variant: Variant, look, params, carry, x: StepInput, gamma, horizon: int, key):
+    """The plans of `plan_rollouts` scored: their discounted return plus the discounted value at
+    their end (`imagined_return`; `look`, the look-ahead's numbers, or None). Returns the
+    scores `[B, C]` and the best plan's buttons `[B, A]`, the ones to press now."""
+    rewards, h = plan_rollouts(variant, params, carry, x, horizon)
+    scores = jax.vmap(lambda r, f: imagined_return(look, params, r, f, gamma))(rewards, h).T  # [B, C]
     best = jnp.argmax(scores + JITTER * jax.random.uniform(key, scores.shape), axis=-1)
     return scores, jnp.asarray(BUTTON_COMBOS)[best]
 
@@ -61,16 +74,16 @@ def planner_fns(variant: Variant, horizon: int):
 
     def init(key, params):
         del key, params
-        return {"carry": variant.init_carry(1), "action": jnp.zeros((1, variant.arch.action_dim)),
-                "is_first": jnp.ones((1,), bool), "scores": jnp.zeros((1, len(BUTTON_COMBOS)))}
+        return {"carry": variant.init_carry(1), "is_first": jnp.ones((1,), bool),
+                "scores": jnp.zeros((1, len(BUTTON_COMBOS)))}
 
     def step(key, state, obs, params):
-        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=state["action"], is_first=state["is_first"])
-        carry, out = variant.step(params["model"], state["carry"], x)
-        scores, best = plan(variant, params["look"], params["model"], carry, jax.nn.sigmoid(out["logits"]),
-                            params["gamma"], horizon, key)
-        return state["action"][0], {"carry": carry, "action": best, "is_first": jnp.zeros((1,), bool),
-                                    "scores": scores}
+        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, variant.arch.action_dim)),
+                      is_first=state["is_first"])
+        scores, best = plan(variant, params["look"], params["model"], state["carry"], x, params["gamma"], horizon,
+                            key)
+        carry, _ = variant.step(params["model"], state["carry"], x.replace(action=best))
+        return best[0], {"carry": carry, "is_first": jnp.zeros((1,), bool), "scores": scores}
 
     return init, step
 
@@ -120,19 +133,19 @@ class MPCPlanner(ReplayLearner):
         return cls(model, game, imagination_config(cfg), cls.hparams(cfg, model), env_params)
 
     def act(self, state: ReplayState, obs: Observation, key: jax.Array, explore=None):
-        """Execute the pending buttons; the model sees o_t and them. The buttons executed next
-        are the best plan's first, each drawn uniformly with chance ε. `info`: the model's
-        outputs and `plan_spread`, the best plan's score minus the worst's."""
+        """Plan from o_t and press the best plan's first buttons at once, each drawn uniformly
+        with chance ε; the model then sees o_t and them. `info`: the model's outputs and
+        `plan_spread`, the best plan's score minus the worst's. `state.action` keeps the buttons
+        pressed."""
         explore = self.exploration(state) if explore is None else explore
-        executed = jnp.where(obs.is_first[:, None], 0.0, state.action)
         params = state.model.params
-        carry, out = self.model.step(params, state.model.carry,
-                                     StepInput(obs=obs.frames, action=executed, is_first=obs.is_first))
+        x = StepInput(obs=obs.frames, action=state.action, is_first=obs.is_first)
         k_plan, k_draw = jax.random.split(key)
-        scores, best = plan(self.model, self.hp.model.lookahead, params, carry, jax.nn.sigmoid(out["logits"]),
-                            self.hp.gamma, self.config.horizon, k_plan)
-        probs = (1.0 - explore) * best + explore * 0.5
-        state = state.replace(model=state.model.replace(carry=carry), action=draw_buttons(k_draw, probs))
+        scores, best = plan(self.model, self.hp.model.lookahead, params, state.model.carry, x, self.hp.gamma,
+                            self.config.horizon, k_plan)
+        executed = draw_buttons(k_draw, (1.0 - explore) * best + explore * 0.5)
+        carry, out = self.model.step(params, state.model.carry, x.replace(action=executed))
+        state = state.replace(model=state.model.replace(carry=carry), action=executed)
         return state, executed, {**out, "plan_spread": jnp.max(scores, -1) - jnp.min(scores, -1)}
 
     def policy(self, state: ReplayState):

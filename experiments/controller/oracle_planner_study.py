@@ -7,14 +7,16 @@ plays of `--steps` steps), and presses the best. The scripted references play th
 The planner itself (`mpc_planner`) replaces only the model and the value with learnt ones.
 
 With `--model-rewards RUN ...`, per run (a controller variant trained with the look-ahead heads
-on the level) a half-learnt planner plays too: `mpc_planner`'s own step (the model fed the frame
-and the pending buttons, a step of delay, the plans imagined by the model and scored by its
-reward head), with the played-out value in place of the model's value. It says what the learnt
-imagination is worth for control when the value is perfect.
+on the level) a half-learnt planner plays instead: `mpc_planner`'s plans (`plan_rollouts`),
+scored by the run's reward head, with the played-out value in place of the model's value. It
+says what the learnt imagination is worth for control when the value is perfect.
+
+With `--delay` the oracle planners act a step late (`delayed`), as `mpc_planner` did before it
+planned from the real frame.
 
     .venv/bin/python experiments/controller/oracle_planner_study.py [--level turned]
         [--policies never_accelerate uniform privileged] [--horizons 5] [--gamma 0.9]
-        [--model-rewards RUN ...] [--out FILE]
+        [--delay] [--model-rewards RUN ...] [--out FILE]
 
 Ends with one JSON line.
 """
@@ -31,15 +33,16 @@ from benchmarks.common import emit  # noqa: E402
 
 
 def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samples: int, steps: int):
-    """(game, game parameters, a privileged policy): the run's planner, its plans' rewards from
-    its imagination, the value at their ends `policy`'s played out in the true game from the
-    state after the pending buttons and the plan's."""
+    """(game, game parameters, a privileged policy): the run's planner (`mpc_planner`'s plans,
+    scored by its reward head), with the value at the plans' ends `policy`'s, played out in the
+    true game from the state after the plan's buttons."""
     import jax
     import jax.numpy as jnp
 
     from cdrl.analysis.imagination_video import load_run
     from cdrl.data.frames import model_obs
     from cdrl.evaluation.probe_ceiling import policy_value
+    from cdrl.learners.mpc_planner import plan_rollouts
     from cdrl.learners.replay_base import BUTTON_COMBOS
     from cdrl.models.base import StepInput
     from cdrl.training import lookahead
@@ -52,17 +55,7 @@ def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samp
 
     def init(key):
         del key
-        return {"carry": variant.init_carry(1), "action": jnp.zeros((1, 3)), "is_first": jnp.ones((1,), bool)}
-
-    def imagined(carry, frame, buttons):
-        def body(c, _):
-            carry, frame = c
-            carry, out = variant.imagine_step(params, carry, frame, buttons[None])
-            frame = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
-            return (carry, frame), variant.features(carry)
-
-        h = jax.lax.scan(body, (carry, frame), None, length=horizon)[1]
-        return discounts @ lookahead.reward(heads, h, look)[:, 0]
+        return {"carry": variant.init_carry(1), "is_first": jnp.ones((1,), bool)}
 
     def held(c, k):
         s, on = c
@@ -70,18 +63,39 @@ def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samp
         return (s, on & ~(term | trunc)), None
 
     def step(key, ps, obs, state, env_params):
-        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=ps["action"], is_first=ps["is_first"])
-        carry, out = variant.step(params, ps["carry"], x)
-        rewards = jax.vmap(imagined, (None, None, 0))(carry, jax.nn.sigmoid(out["logits"]), combos)
-        k_now, k_plan, k_value = jax.random.split(key, 3)
-        now = game.step_state(k_now, state, ps["action"][0], env_params)[0]
-        states = jax.tree.map(lambda x: jnp.broadcast_to(x, combos.shape[:1] + x.shape), now)
+        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, 3)), is_first=ps["is_first"])
+        h = plan_rollouts(variant, params, ps["carry"], x, horizon)[1]
+        rewards = lookahead.reward(heads, h, look)[..., 0] @ discounts
+        k_plan, k_value = jax.random.split(key)
+        states = jax.tree.map(lambda x: jnp.broadcast_to(x, combos.shape[:1] + x.shape), state)
         ends, on = jax.lax.scan(held, (states, jnp.ones(combos.shape[0], bool)), jax.random.split(k_plan, horizon))[0]
         value = policy_value(game, env_params, policy, gamma, k_value, ends, on, samples=samples, steps=steps)
         best = combos[jnp.argmax(rewards + gamma ** horizon * value)]
-        return ps["action"][0], {"carry": carry, "action": best[None], "is_first": jnp.zeros((1,), bool)}
+        carry = variant.step(params, ps["carry"], x.replace(action=best[None]))[0]
+        return best, {"carry": carry, "is_first": jnp.zeros((1,), bool)}
 
     return game, env_params, Policy(f"model_reward_planner({run_dir.name})", init, step, privileged=True)
+
+
+def delayed(game, planner):
+    """`planner` acting a step late, as `mpc_planner` does: it plans from the game's state after
+    the pending buttons (the game's randomness of that step drawn anew) and presses its choice
+    next step."""
+    import jax
+    import jax.numpy as jnp
+
+    from envs.policies import Policy
+
+    def init(key):
+        return {"inner": planner.init(key), "action": jnp.zeros((3,))}
+
+    def step(key, ps, obs, state, env_params):
+        k_now, k_plan = jax.random.split(key)
+        now = game.step_state(k_now, state, ps["action"], env_params)[0]
+        best, inner = planner.step(k_plan, ps["inner"], obs, now, env_params)
+        return ps["action"], {"inner": inner, "action": best}
+
+    return Policy(f"delayed({planner.name})", init, step, privileged=True)
 
 
 def main(argv=None) -> int:
@@ -95,6 +109,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=30, help="steps of each play")
     parser.add_argument("--games", type=int, default=64)
     parser.add_argument("--episode-steps", type=int, default=200)
+    parser.add_argument("--delay", action="store_true", help="the oracle planners act a step late (`delayed`)")
     parser.add_argument("--model-rewards", nargs="*", default=[], help="runs whose imagined rewards plan (see above)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
@@ -120,9 +135,11 @@ def main(argv=None) -> int:
             start = time.perf_counter()
             oracle = oracle_planner(game, continuation_policy(game, name), args.gamma, horizon, samples=args.samples,
                                     steps=args.steps)
+            oracle = delayed(game, oracle) if args.delay else oracle
             row = play.summarize(*play.play(game, env_params, oracle.init, oracle.step, seeds, args.episode_steps,
                                             privileged=True))
-            row.update(value_policy=name, horizon=horizon, seconds=round(time.perf_counter() - start, 1))
+            row.update(value_policy=name, horizon=horizon, delay=int(args.delay),
+                       seconds=round(time.perf_counter() - start, 1))
             result["planners"].append(row)
             print(f"H {horizon}, value of {name}: {row['mean_return']:+.2f} [{row['ci95'][0]:.2f}, "
                   f"{row['ci95'][1]:.2f}] ({row['seconds']} s)", file=sys.stderr, flush=True)
