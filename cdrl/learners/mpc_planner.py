@@ -88,6 +88,23 @@ def planner_fns(variant: Variant, horizon: int):
     return init, step
 
 
+def game_plans(game, env_params, state, horizon: int, key):
+    """The plans of `plan_rollouts` played in the true game from its state `state`: each button
+    combination held `horizon` steps, the plans sharing their keys. Returns the game's states at
+    their ends `[C, ...]`, whether each game is still on there `[C]` and the rewards `[H, C]`
+    (zero after the game's end)."""
+    combos = jnp.asarray(BUTTON_COMBOS)
+
+    def held(c, k):
+        s, on = c
+        s, reward, term, trunc, _ = jax.vmap(game.step_state, (None, 0, 0, None))(k, s, combos, env_params)
+        return (s, on & ~(term | trunc)), reward * on
+
+    states = jax.tree.map(lambda x: jnp.broadcast_to(x, combos.shape[:1] + x.shape), state)
+    (ends, on), rewards = jax.lax.scan(held, (states, jnp.ones(combos.shape[0], bool)), jax.random.split(key, horizon))
+    return ends, on, rewards
+
+
 def oracle_planner(game, policy, gamma: float, horizon: int, *, samples: int = 4, steps: int = 30):
     """The planner with a perfect model and a perfect value of `policy`, as a privileged policy
     (its step reads the game's state; `cdrl.evaluation.play`). Each step it holds every button
@@ -100,23 +117,14 @@ def oracle_planner(game, policy, gamma: float, horizon: int, *, samples: int = 4
     from envs.policies import Policy, uniform_init  # not at import: its module makes arrays, and
     # `cdrl train` must reach `jax.distributed.initialize` before the backend starts
 
-    combos = jnp.asarray(BUTTON_COMBOS)
     discounts = gamma ** jnp.arange(horizon, dtype=jnp.float32)
 
     def step(key, ps, obs, state, env_params):
         del obs
         k_plan, k_value = jax.random.split(key)
-
-        def held(c, k):
-            s, on = c
-            s, reward, term, trunc, _ = jax.vmap(game.step_state, (None, 0, 0, None))(k, s, combos, env_params)
-            return (s, on & ~(term | trunc)), reward * on
-
-        states = jax.tree.map(lambda x: jnp.broadcast_to(x, combos.shape[:1] + x.shape), state)
-        (ends, on), rewards = jax.lax.scan(held, (states, jnp.ones(combos.shape[0], bool)),
-                                           jax.random.split(k_plan, horizon))
+        ends, on, rewards = game_plans(game, env_params, state, horizon, k_plan)
         value = policy_value(game, env_params, policy, gamma, k_value, ends, on, samples=samples, steps=steps)
-        return combos[jnp.argmax(discounts @ rewards + gamma ** horizon * value)], ps
+        return jnp.asarray(BUTTON_COMBOS)[jnp.argmax(discounts @ rewards + gamma ** horizon * value)], ps
 
     return Policy(f"oracle_planner({policy.name}, H {horizon})", uniform_init, step, privileged=True)
 

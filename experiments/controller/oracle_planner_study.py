@@ -9,7 +9,8 @@ The planner itself (`mpc_planner`) replaces only the model and the value with le
 With `--model-rewards RUN ...`, per run (a controller variant trained with the look-ahead heads
 on the level) a half-learnt planner plays instead: `mpc_planner`'s plans (`plan_rollouts`),
 scored by the run's reward head, with the played-out value in place of the model's value. It
-says what the learnt imagination is worth for control when the value is perfect.
+says what the learnt imagination is worth for control when the value is perfect. The policy
+name `model` there takes the run's own value head instead: the planner learnt whole, offline.
 
 With `--delay` the oracle planners act a step late (`delayed`), as `mpc_planner` did before it
 planned from the real frame.
@@ -23,6 +24,7 @@ Ends with one JSON line.
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -35,14 +37,14 @@ from benchmarks.common import emit  # noqa: E402
 def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samples: int, steps: int):
     """(game, game parameters, a privileged policy): the run's planner (`mpc_planner`'s plans,
     scored by its reward head), with the value at the plans' ends `policy`'s, played out in the
-    true game from the state after the plan's buttons."""
+    true game from the state after the plan's buttons; for `policy` None, its value head's."""
     import jax
     import jax.numpy as jnp
 
     from cdrl.analysis.imagination_video import load_run
     from cdrl.data.frames import model_obs
     from cdrl.evaluation.probe_ceiling import policy_value
-    from cdrl.learners.mpc_planner import plan_rollouts
+    from cdrl.learners.mpc_planner import game_plans, plan_rollouts
     from cdrl.learners.replay_base import BUTTON_COMBOS
     from cdrl.models.base import StepInput
     from cdrl.training import lookahead
@@ -57,19 +59,16 @@ def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samp
         del key
         return {"carry": variant.init_carry(1), "is_first": jnp.ones((1,), bool)}
 
-    def held(c, k):
-        s, on = c
-        s, reward, term, trunc, _ = jax.vmap(game.step_state, (None, 0, 0, None))(k, s, combos, env_params)
-        return (s, on & ~(term | trunc)), None
-
     def step(key, ps, obs, state, env_params):
         x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, 3)), is_first=ps["is_first"])
         h = plan_rollouts(variant, params, ps["carry"], x, horizon)[1]
         rewards = lookahead.reward(heads, h, look)[..., 0] @ discounts
-        k_plan, k_value = jax.random.split(key)
-        states = jax.tree.map(lambda x: jnp.broadcast_to(x, combos.shape[:1] + x.shape), state)
-        ends, on = jax.lax.scan(held, (states, jnp.ones(combos.shape[0], bool)), jax.random.split(k_plan, horizon))[0]
-        value = policy_value(game, env_params, policy, gamma, k_value, ends, on, samples=samples, steps=steps)
+        if policy is None:
+            value = lookahead.value(heads, h[:, -1, 0], look)
+        else:
+            k_plan, k_value = jax.random.split(key)
+            ends, on, _ = game_plans(game, env_params, state, horizon, k_plan)
+            value = policy_value(game, env_params, policy, gamma, k_value, ends, on, samples=samples, steps=steps)
         best = combos[jnp.argmax(rewards + gamma ** horizon * value)]
         carry = variant.step(params, ps["carry"], x.replace(action=best[None]))[0]
         return best, {"carry": carry, "is_first": jnp.zeros((1,), bool)}
@@ -102,7 +101,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--level", default="turned")
     parser.add_argument("--policies", nargs="+", default=["never_accelerate", "uniform", "privileged"],
-                        help="the policies whose value ends the plans")
+                        help="the policies whose value ends the plans (with --model-rewards, `model`: the "
+                        "run's value head)")
     parser.add_argument("--horizons", type=int, nargs="+", default=[5])
     parser.add_argument("--gamma", type=float, default=0.9)
     parser.add_argument("--samples", type=int, default=4, help="plays averaged into each value")
@@ -143,20 +143,18 @@ def main(argv=None) -> int:
             result["planners"].append(row)
             print(f"H {horizon}, value of {name}: {row['mean_return']:+.2f} [{row['ci95'][0]:.2f}, "
                   f"{row['ci95'][1]:.2f}] ({row['seconds']} s)", file=sys.stderr, flush=True)
-    for run in args.model_rewards:
-        for name in args.policies:
-            start = time.perf_counter()
-            g, p, planner = model_reward_planner(Path(run), continuation_policy(game, name), args.gamma,
-                                                 args.horizons[0], args.samples, args.steps)
-            if p.max_steps != env_params.max_steps:
-                raise SystemExit(f"run {run} plays {int(p.max_steps)} steps a game, not {args.episode_steps}")
-            row = play.summarize(*play.play(g, p, planner.init, planner.step, seeds, args.episode_steps,
-                                            privileged=True))
-            row.update(run=run, rewards="model", value_policy=name, horizon=args.horizons[0],
-                       seconds=round(time.perf_counter() - start, 1))
-            result["planners"].append(row)
-            print(f"{run}: the model's rewards, H {args.horizons[0]}, value of {name}: {row['mean_return']:+.2f} "
-                  f"[{row['ci95'][0]:.2f}, {row['ci95'][1]:.2f}] ({row['seconds']} s)", file=sys.stderr, flush=True)
+    for run, horizon, name in itertools.product(args.model_rewards, args.horizons, args.policies):
+        start = time.perf_counter()
+        value_of = None if name == "model" else continuation_policy(game, name)
+        g, p, planner = model_reward_planner(Path(run), value_of, args.gamma, horizon, args.samples, args.steps)
+        if p.max_steps != env_params.max_steps:
+            raise SystemExit(f"run {run} plays {int(p.max_steps)} steps a game, not {args.episode_steps}")
+        row = play.summarize(*play.play(g, p, planner.init, planner.step, seeds, args.episode_steps, privileged=True))
+        row.update(run=run, rewards="model", value_policy=name, horizon=horizon,
+                   seconds=round(time.perf_counter() - start, 1))
+        result["planners"].append(row)
+        print(f"{run}: the model's rewards, H {horizon}, value of {name}: {row['mean_return']:+.2f} "
+              f"[{row['ci95'][0]:.2f}, {row['ci95'][1]:.2f}] ({row['seconds']} s)", file=sys.stderr, flush=True)
     emit(result, args.out)
     return 0
 

@@ -31,6 +31,8 @@ greedy buttons. The reference policies play the same games once: they do not lea
                 on a world model pre-trained with the look-ahead heads (`--lookahead-steps 3`)
   plan-pre-bal  the same, its pre-training also teaching the balanced reward (as `-bal` above)
   plan-pre-clip  the same on the world model's best look-ahead training (clipped, value at gamma 0.9)
+  plan1-pre-clip  the same with one-step plans: each button combination's reward and value after
+                the real frame, nothing imagined
   plan-pre-bal-mirror  the same, half of its pre-training's streams seen in a mirror (`--mirror-streams`)
   imagine-look-pre-bal, critic-look-pre-bal  `imagine` and `critic` on `plan-pre-bal`'s world model
                 (5 imagined steps and the value head's value at the end)
@@ -146,6 +148,9 @@ CONFIGS: dict[str, dict] = {
     "plan-pre-clip": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 5, **LOOK_CLIP,
                       "noise_std": 0.1, "warmup_steps": 0,
                       "pretrain": {"variant": "final_proposal", "learner": "world_model", **LOOK_CLIP}},
+    "plan1-pre-clip": {"variant": "final_proposal", "learner": "mpc_planner", "horizon": 1, **LOOK_CLIP,
+                       "noise_std": 0.1, "warmup_steps": 0,
+                       "pretrain": {"variant": "final_proposal", "learner": "world_model", **LOOK_CLIP}},
     "imagine-look-pre-bal": {"variant": "final_proposal", "learner": "imagined_ascent", **LOOK,
                              "pretrain": LOOK_PRETRAIN_BAL},
     "critic-look-pre-bal": {"variant": "final_proposal", "learner": "imagination_ac", **LOOK,
