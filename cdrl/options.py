@@ -45,7 +45,8 @@ class GameOptions:
     episodes: int = _opt(60, "episodes to collect when data is 'game' or 'synthetic'")
     episode_steps: int = _opt(200, "step limit of a collected episode")
     data_policy: str = _opt("auto", "data 'game': the policy that plays the collected episodes, one of "
-                                    "envs.policies.POLICIES (behaviour, uniform, held_uniform, never_accelerate); "
+                                    "envs.policies.POLICIES (behaviour, uniform, held_uniform, never_accelerate, "
+                                    "seldom_accelerate); "
                                     "auto: uniform for a variant that takes actions, else behaviour (the thesis's)")
 
 

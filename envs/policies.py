@@ -129,6 +129,19 @@ def never_accelerate_step(key: jax.Array, state: UniformState, obs: Any = None):
     return jnp.concatenate([u, jnp.zeros((1,), jnp.float32)]), state
 
 
+SELDOM_ACCELERATE = 0.1  # seldom_accelerate: the chance of pressing accelerate each step
+
+
+def seldom_accelerate_step(key: jax.Array, state: UniformState, obs: Any = None):
+    """Right and left each pressed with probability 1/2, accelerate with probability
+    ``SELDOM_ACCELERATE``: a never-accelerating play whose data still show every button.
+
+    Returns ``(action [3] float32, state)``.
+    """
+    u = fastrng.uniform(key, 3)
+    return jnp.concatenate([u[:2], (u[2:] < SELDOM_ACCELERATE).astype(jnp.float32)]), state
+
+
 def random_turns_instead(key: jax.Array, buttons: jax.Array, share) -> jax.Array:
     """``buttons`` [3], or with probability ``share`` random turns in their place (right and left
     each pressed with probability 1/2, accelerate never; 0/1 floats): the exploration that puts
@@ -155,6 +168,7 @@ POLICIES: dict[str, Policy] = {
     "uniform": Policy("uniform", uniform_init, uniform_step),
     "held_uniform": Policy("held_uniform", held_uniform_init, held_uniform_step),
     "never_accelerate": Policy("never_accelerate", uniform_init, never_accelerate_step),
+    "seldom_accelerate": Policy("seldom_accelerate", uniform_init, seldom_accelerate_step),
 }
 
 # How far ahead (raw pixels) and how wide a corridor the privileged policy checks for

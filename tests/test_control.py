@@ -56,6 +56,16 @@ def test_never_accelerate_and_privileged_never_press_accelerate():
     assert priv.privileged and not never.privileged
 
 
+def test_seldom_accelerate_presses_accelerate_at_its_rate_and_turns_at_random():
+    from envs.policies import SELDOM_ACCELERATE
+
+    seldom = get_policy("seldom_accelerate")
+    a = jax.vmap(lambda k: seldom.step(k, seldom.init(k))[0])(jax.random.split(jax.random.PRNGKey(0), 4000))
+    pressed = np.asarray(a) > 0.5
+    np.testing.assert_allclose(pressed.mean(0), [0.5, 0.5, SELDOM_ACCELERATE], atol=0.025)
+    assert set(np.unique(np.asarray(a[:, 2]))) == {0.0, 1.0}
+
+
 def _one_pellet(g, params, ahead: float, right: float):
     """A game state whose only pellet lies `ahead` pixels in front of the player's head and
     `right` pixels to its right, with every opponent far away."""
