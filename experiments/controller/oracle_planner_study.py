@@ -77,7 +77,7 @@ def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samp
 
 
 def delayed(game, planner):
-    """`planner` acting a step late, as `mpc_planner` does: it plans from the game's state after
+    """`planner` acting a step late, as `mpc_planner` did: it plans from the game's state after
     the pending buttons (the game's randomness of that step drawn anew) and presses its choice
     next step."""
     import jax
