@@ -123,6 +123,13 @@ class LossOptions:
                                     "lambda-returns (gamma, gae_lambda)", traced=True)
     head_grad: float = _opt(0.01, "look-ahead: scale of the heads' gradient into the model (the heads themselves "
                                   "learn at full scale, by Adam at ctrl_lr)", traced=True)
+    value_backup: str = _opt("lambda", "look-ahead: the value's targets: 'lambda', lambda-returns of the data's own "
+                                       "buttons; 'max', Peng's Q(lambda), each step bootstrapped on the best of the "
+                                       "eight buttons pressed with the next real frame (the planner's one-step "
+                                       "scores)")
+    frame_value_weight: float = _opt(0.0, "look-ahead: weight of a value head on the model's predicted next frame "
+                                          "(a CNN of its own; 0: no such head); the planner values its plans' "
+                                          "last predicted frame with it")
     value_target_decay: float = _opt(0.98, "look-ahead: per update, the value's target copy keeps this share of "
                                            "itself and takes the rest from the value head", traced=True)
 

@@ -17,6 +17,7 @@ import games
 from cdrl.evaluation import play
 from cdrl.models import make_variant
 from cdrl.models.arch import TINY
+from cdrl.models.base import BUTTON_COMBOS
 from cdrl.learners import LEARNERS, canonical, one_step_q, onpolicy_ac
 from cdrl.learners import replay_base as rb
 from cdrl.learners.api import train_program
@@ -164,7 +165,7 @@ def test_the_value_controller_ascends_the_exact_expected_value_of_its_buttons():
     probs = jnp.asarray([[0.9, 0.2, 0.5], [0.1, 0.7, 0.05]])
     logp = one_step_q.button_log_probs(probs)
     np.testing.assert_allclose(np.exp(logp).sum(axis=0), 1.0, rtol=1e-5)
-    combo = list(map(tuple, np.asarray(rb.BUTTON_COMBOS))).index((1.0, 0.0, 1.0))
+    combo = list(map(tuple, np.asarray(BUTTON_COMBOS))).index((1.0, 0.0, 1.0))
     np.testing.assert_allclose(np.exp(logp[combo]), [0.9 * 0.8 * 0.5, 0.1 * 0.3 * 0.05], rtol=1e-5)
 
     v = make_variant("final_proposal", TINY)
@@ -183,7 +184,7 @@ def test_the_value_controller_ascends_the_exact_expected_value_of_its_buttons():
     probs = jnp.asarray(rng.uniform(0.05, 0.95, size=(n, 3)), jnp.float32)
     actor, (_, terms) = one_step_q.value_objective(v, hp, params, critic, chunk, (carry, probs, frame))
     expected = np.zeros(n)
-    for a in np.asarray(rb.BUTTON_COMBOS):
+    for a in np.asarray(BUTTON_COMBOS):
         after, _ = v.imagine_step(params, carry, None, jnp.broadcast_to(jnp.asarray(a), (n, 3)))
         q = np.asarray(rb.critic_value(critic, after["lstm"].h))
         p = np.prod(np.where(a > 0, np.asarray(probs), 1 - np.asarray(probs)), axis=-1)

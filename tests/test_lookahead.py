@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from cdrl.data.stream import Chunk
-from cdrl.models import TINY, StepInput, make_variant
+from cdrl.models import TINY, StepInput, make_variant, nets
+from cdrl.models.base import BUTTON_COMBOS
 from cdrl.runs.config import RunConfig
 from cdrl.training import lookahead as la
 from cdrl.training.optim import HParams
@@ -83,6 +84,15 @@ def _by_hand(variant, params, hp, chunk, weights):
         preds.append(jax.nn.sigmoid(out["logits"]))
     real_h = np.stack([np.asarray(variant.features(c)) for c in carries])  # [T, B, F]
     target_v = np.stack([[decode(mlp(heads["value_target"], real_h[t, b])) for b in range(B)] for t in range(T)])
+    boot = target_v  # what V_{t+1} bootstraps on: the data's own buttons, or the best of the eight
+    if hp.backup == "max":
+        boot = np.full((T, B), -np.inf)
+        for t in range(1, T):
+            for combo in BUTTON_COMBOS:
+                c, _ = variant.step(params, carries[t - 1], StepInput(
+                    obs=jnp.asarray(obs[t]), action=jnp.tile(jnp.asarray(combo), (B, 1)), is_first=jnp.asarray(first[t])))
+                h = np.asarray(variant.features(c))
+                boot[t] = np.maximum(boot[t], [decode(mlp(heads["value_target"], h[b])) for b in range(B)])
     ret = np.zeros((T, B))
     for b in range(B):
         ret[T - 1, b] = target_v[T - 1, b]
@@ -91,7 +101,7 @@ def _by_hand(variant, params, hp, chunk, weights):
                 ret[t, b] = rew[t, b] + hp.gamma * target_v[t, b]
                 continue
             goes_on = 0.0 if first[t + 1, b] else 1.0
-            ret[t, b] = rew[t, b] + hp.gamma * goes_on * ((1 - hp.lam) * target_v[t + 1, b] + hp.lam * ret[t + 1, b])
+            ret[t, b] = rew[t, b] + hp.gamma * goes_on * ((1 - hp.lam) * boot[t + 1, b] + hp.lam * ret[t + 1, b])
     # (h, reward target, continuation target or None, return target or None) of every scored state
     scored = [(real_h[t, b], rew[t, b], None if t == T - 1 else float(not first[t + 1, b] or cut[t, b]),
                None if t == T - 1 else ret[t, b]) for t in range(T) for b in range(B)]
@@ -123,25 +133,42 @@ def _by_hand(variant, params, hp, chunk, weights):
             c_bce.append(np.logaddexp(0, zc) - cont * zc)
             v_ce.append(twohot_ce(zv, ret_t))
             v_mse.append((decode(zv) - ret_t) ** 2)
+    # the frame value: from the predicted frame of step t, the return from t + 1 on (0 after an episode's end)
+    f_ce = []
+    if hp.frame_value:
+        fv = heads["frame_value"]
+        for t in range(T - 1):
+            for b in range(B):
+                ended = bool(first[t + 1, b])
+                if ended and cut[t, b] or not ended and t + 1 == T - 1:
+                    continue  # a step limit's cut, or the chunk's last return: unknown
+                code = nets.obs_encoder(fv["enc"], variant.arch, preds[t][b:b + 1])
+                f_ce.append(twohot_ce(mlp(fv["mlp"], np.asarray(code)[0]), 0.0 if ended else ret[t + 1, b]))
     # the imagined rewards' squared error, averaged within each sign class of the reward, then over the classes
     errors, signs = np.asarray(imag_mse), np.asarray(imag_sign)
     balanced = np.mean([errors[signs == c].mean() for c in (-1.0, 0.0, 1.0) if (signs == c).any()])
     return {"imag_obs_bce": np.mean(imag_bce), "imag_reward_mse": np.mean(imag_mse), "imag_reward_balanced": balanced,
             "reward_twohot": np.mean(r_ce),
-            "cont_bce": np.mean(c_bce), "value_twohot": np.mean(v_ce), "reward_head_mse": np.mean(r_mse),
+            "cont_bce": np.mean(c_bce), "value_twohot": np.mean(v_ce), "frame_value_twohot": np.mean(f_ce or [0.0]),
+            "reward_head_mse": np.mean(r_mse),
             "value_mse": np.mean(v_mse)}
 
 
-@pytest.mark.parametrize("name,steps,stride,truncated", [("reward_prediction", 3, 2, False),
-                                                        ("final_proposal", 2, 3, False),
-                                                        ("final_proposal", 3, 2, True)])
-def test_every_term_equals_a_plain_loop_over_starts_and_steps(name, steps, stride, truncated):
+@pytest.mark.parametrize("name,steps,stride,truncated,backup", [("reward_prediction", 3, 2, False, "lambda"),
+                                                               ("final_proposal", 2, 3, False, "lambda"),
+                                                               ("final_proposal", 3, 2, True, "lambda"),
+                                                               ("final_proposal", 2, 3, True, "max"),
+                                                               ("reward_prediction", 2, 2, True, "frame")])
+def test_every_term_equals_a_plain_loop_over_starts_and_steps(name, steps, stride, truncated, backup):
     """Imagined steps stop at the chunk's end and at an episode start; the value's targets are
-    λ-returns of the target head's values on the real states; the heads score the real steps and
-    every imagined one. An episode its step limit cut (`truncated`) goes on: its last step
-    bootstraps on its own state's value."""
+    λ-returns of the target head's values on the real states (backup "max": Peng's Q(λ), each
+    step bootstrapping on the best of the eight buttons pressed with the next real frame); the
+    heads score the real steps and every imagined one. An episode its step limit cut
+    (`truncated`) goes on: its last step bootstraps on its own state's value. The frame value
+    ("frame") learns from each predicted frame the return from the step after, 0 after an end."""
     variant = make_variant(name, TINY)
-    hp = la.LookaheadHParams.create(steps=steps, stride=stride, gamma=0.9, lam=0.8)
+    hp = la.LookaheadHParams.create(steps=steps, stride=stride, gamma=0.9, lam=0.8, backup=backup.replace("frame", "lambda"),
+                                    frame_value=backup == "frame")
     params = la.with_heads(variant, variant.init(jax.random.PRNGKey(3)), jax.random.PRNGKey(4), hp)
     # non-zero heads, and a target copy that differs from the head, so every path counts
     params["lookahead"] = jax.tree.map(lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(x.size), x.shape),
@@ -202,3 +229,7 @@ def test_look_ahead_needs_a_model_that_acts_and_refuses_multi_step_feeding():
     with pytest.raises(ValueError, match="lookahead_steps >= 1"):
         RunConfig(variant="final_proposal", learner="world_model", imagined_reward_balanced_weight=0.003)
 
+    with pytest.raises(ValueError, match="value_backup 'max' and frame_value_weight 0.0 set .*lookahead_steps >= 1"):
+        RunConfig(variant="final_proposal", learner="world_model", value_backup="max")
+    with pytest.raises(ValueError, match="value_backup must be one of lambda, max; got 'best'"):
+        RunConfig(variant="final_proposal", learner="world_model", lookahead_steps=2, value_backup="best")

@@ -16,7 +16,8 @@ from cdrl.learners import replay_base as rb
 from cdrl.learners.api import train_program
 from cdrl.learners.imagination import ImaginationConfig
 from cdrl.learners.mpc_planner import JITTER, plan, planner_fns
-from cdrl.models import TINY, StepInput, make_variant
+from cdrl.models import TINY, StepInput, make_variant, nets
+from cdrl.models.base import BUTTON_COMBOS
 from cdrl.training import lookahead as la
 from cdrl.training.optim import HParams, OptHParams
 
@@ -43,29 +44,37 @@ def _by_hand(variant, look, params, carry, x):
         for k in range(HORIZON):
             if k:
                 cr, out = variant.imagine_step(params, cr, fr, action)
-            fr = jax.nn.sigmoid(out["logits"]) if "logits" in out else fr
+            fr = jax.nn.sigmoid(out["logits"] if "logits" in out else variant.decode(params, out["pred_code"]))
             h = np.asarray(variant.features(cr))
             r = np.asarray(out["reward"]) if look is None else _np_expected(params["lookahead"]["reward"], h,
                                                                             look.bin_values)
             scores[:, c] += GAMMA ** k * r
-        if look is not None:
-            scores[:, c] += GAMMA ** HORIZON * _np_expected(params["lookahead"]["value"], h, look.bin_values)
+        if look is not None and look.frame_value:  # the frame value of the last predicted frame
+            fv = params["lookahead"]["frame_value"]
+            code = np.asarray(nets.obs_encoder(fv["enc"], variant.arch, fr))
+            scores[:, c] += GAMMA ** HORIZON * _np_expected(fv["mlp"], code, look.bin_values)
+        elif look is not None:  # the value head's return counts the last step's reward again: take it out
+            v = _np_expected(params["lookahead"]["value"], h, look.bin_values)
+            scores[:, c] += GAMMA ** HORIZON * (v - r) / float(look.gamma)
     return scores
 
 
-@pytest.mark.parametrize("name, heads", [("final_proposal", True), ("final_proposal", False),
-                                         ("reward_prediction", True)])
+@pytest.mark.parametrize("name, heads", [("final_proposal", "value"), ("final_proposal", None),
+                                         ("reward_prediction", "value"), ("final_proposal", "frame_value")])
 def test_the_plans_scores_are_the_held_buttons_predicted_returns_plus_the_value(name, heads):
     """A plan's score: its buttons pressed with the real frame (the model's real step from the
-    state before it), held through the imagined steps after; the best plan's buttons press now."""
+    state before it), held through the imagined steps after; the best plan's buttons press now.
+    The value at its end: the value head's after the last reward, or the frame value of the
+    last predicted frame."""
     variant = make_variant(name, TINY)
-    look = la.LookaheadHParams.create(steps=2) if heads else None
+    look = la.LookaheadHParams.create(steps=2, frame_value=heads == "frame_value") if heads else None
     key = jax.random.PRNGKey(0)
     params = la.with_heads(variant, variant.init(key), key, look)
     if heads:  # heads that predict something: random last layers (they start at zero)
-        for i, head in enumerate(("reward", "value")):
-            p = params["lookahead"][head]["dense1"]
-            p["kernel"] = 0.3 * jax.random.normal(jax.random.PRNGKey(i + 1), p["kernel"].shape)
+        for i, p in enumerate((params["lookahead"]["reward"], params["lookahead"]["value"],
+                               params["lookahead"].get("frame_value", {}).get("mlp"))):
+            if p is not None:
+                p["dense1"]["kernel"] = 0.3 * jax.random.normal(jax.random.PRNGKey(i + 1), p["dense1"]["kernel"].shape)
     frames = jax.random.uniform(jax.random.PRNGKey(5), (2, B, TINY.image_size, TINY.image_size))
     x = StepInput(obs=frames[0], action=jnp.asarray([[1.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
                   is_first=jnp.ones((B,), bool))
@@ -75,7 +84,7 @@ def test_the_plans_scores_are_the_held_buttons_predicted_returns_plus_the_value(
     expected = _by_hand(variant, look, params, carry, x)
     np.testing.assert_allclose(np.asarray(scores), expected, rtol=2e-4, atol=2e-5)
     assert np.ptp(expected, axis=1).min() > 1e-3  # the plans differ, so the choice below means something
-    np.testing.assert_array_equal(np.asarray(best), rb.BUTTON_COMBOS[expected.argmax(axis=1)])
+    np.testing.assert_array_equal(np.asarray(best), BUTTON_COMBOS[expected.argmax(axis=1)])
 
 
 def _left_bonus_learner(name: str, lookahead_steps: int, horizon: int):
@@ -128,7 +137,7 @@ def test_a_recorded_game_is_the_game_play_counts_and_shows_the_plans(tmp_path):
     top2 = np.sort(game["scores"], axis=1)[:, -2:]
     clear = np.flatnonzero(top2[:, 1] - top2[:, 0] > 2 * JITTER)  # no tie the planner's jitter breaks
     assert clear.size > n // 2
-    np.testing.assert_array_equal(game["action"][clear], rb.BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
+    np.testing.assert_array_equal(game["action"][clear], BUTTON_COMBOS[game["scores"][clear].argmax(axis=1)])
     path = write_gif(frame_images(game, "test"), tmp_path / "game.gif", 100)
     assert Image.open(path).n_frames == n
 
@@ -154,7 +163,7 @@ def test_the_imagined_actor_critic_ends_its_returns_on_the_look_ahead_value():
     h = np.asarray(traj["h"])
     rewards = _np_expected(params["lookahead"]["reward"], h, look.bin_values)
     values = np.array(critic_value(state.critic, traj["h"]))
-    values[-1] = _np_expected(params["lookahead"]["value"], h[-1], look.bin_values)
+    values[-1] = (_np_expected(params["lookahead"]["value"], h[-1], look.bin_values) - rewards[-1]) / float(look.gamma)
     ret = values[-1]
     for k in reversed(range(3)):
         ret = rewards[k] + float(hp.gamma) * ((1 - float(hp.lam)) * values[k] + float(hp.lam) * ret)

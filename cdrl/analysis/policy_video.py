@@ -64,7 +64,7 @@ def record(game, env_params, policy: tuple, seed: int, max_steps: int, arch=None
 
 def combo_names(count: int) -> list[str]:
     """The button combinations' short names, in `BUTTON_COMBOS` order: R, L, A or '.' each."""
-    from cdrl.learners.replay_base import BUTTON_COMBOS
+    from cdrl.models.base import BUTTON_COMBOS
 
     return ["".join(c if on else "." for c, on in zip("RLA", combo)) for combo in BUTTON_COMBOS[:count]]
 

@@ -127,6 +127,9 @@ def _followed_branches(variant: Variant, params, game, env_params, hp, keys, *, 
     def value(h):
         return lookahead.value(heads, h, hp) if heads is not None else jnp.zeros(h.shape[:-1])
 
+    def value_after(h):  # what a branch's score adds after its rewards (`lookahead.value_after`)
+        return lookahead.value_after(heads, h, hp) if heads is not None else jnp.zeros(h.shape[:-1])
+
     def real(key, state):
         def body(c, k):
             state, on = c
@@ -147,7 +150,7 @@ def _followed_branches(variant: Variant, params, game, env_params, hp, keys, *, 
             shown = None
             if frames:
                 shown = nxt if "logits" in out else jax.nn.sigmoid(variant.decode(params, out["pred_code"]))
-            return (carry, nxt), (r.reshape(n), value(h), shown)
+            return (carry, nxt), (r.reshape(n), value_after(h), shown)
 
         carries = jax.tree.map(lambda x: jnp.repeat(x, n, axis=0), carry)
         return jax.lax.scan(body, (carries, jnp.repeat(frame, n, axis=0)), None, length=horizon)[1]
@@ -172,8 +175,8 @@ def followed_branches(variant: Variant, params, game, env_params, hp, *, games: 
                       horizon: int, frames: bool = False, source: str | None = None) -> dict:
     """The followed play of `games` games and its branches at `points` starts, every `every`
     steps, as numpy arrays. Per game, start, sequence and step `[games, points, 4, horizon]`:
-    `real` and `imagined` rewards, `on` (the game still on before the step), `value` (V of
-    the imagined state after the step; 0 without a value head); with `frames`, `real_frames`
+    `real` and `imagined` rewards, `on` (the game still on before the step), `value` (the
+    return after the imagined step's reward, `lookahead.value_after`; 0 without a value head); with `frames`, `real_frames`
     and `imagined_frames` `[..., horizon, H, W]` in [0, 1]. Per start `[games, points]`: `alive`.
     Per followed step `[games, points * every]`: `followed_value` V(h_t), `followed_reward` and
     `followed_alive`. `source`: where the imagined rewards come from (`reward_source`)."""

@@ -50,18 +50,21 @@ def imagination_config(cfg) -> ImaginationConfig:
                              model_updates=cfg.model_updates, horizon=cfg.horizon)
 
 
-def imagined_return(look, params, rewards, h, gamma):
-    """Σ_k γ^k r̃_{k+1} + γ^H V(h_H) of imagined steps (`rewards`, states `h`, leading axis H):
-    the rewards and the value of the look-ahead heads where the model has them (`look`, the
+def imagined_return(look, params, rewards, h, gamma, end=None):
+    """Σ_k γ^k r̃_{k+1} + γ^H V_H of imagined steps (`rewards`, states `h`, leading axis H): the
+    rewards and the value of the look-ahead heads where the model has them (`look`, the
     look-ahead's numbers, and `params["lookahead"]`); else the variant's own `rewards` and no
-    value at the end."""
+    value at the end. V_H is the return after the last step's reward: `end` where the caller
+    has it (`mpc_planner`: the frame value of the last predicted frame), else
+    `lookahead.value_after` (the value head's own counts that reward again)."""
     horizon = rewards.shape[0]
     discount = gamma ** jnp.arange(horizon, dtype=jnp.float32).reshape((horizon,) + (1,) * (rewards.ndim - 1))
     heads = lookahead_heads(look, params)
     if heads is None:
         return jnp.sum(discount * rewards, axis=0)
     rewards = lookahead.reward(heads, h, look)
-    return jnp.sum(discount * rewards, axis=0) + gamma ** horizon * lookahead.value(heads, h[-1], look)
+    end = lookahead.value_after(heads, h[-1], look) if end is None else end
+    return jnp.sum(discount * rewards, axis=0) + gamma ** horizon * end
 
 
 class ImaginationLearner(ReplayLearner):

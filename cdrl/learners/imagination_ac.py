@@ -36,9 +36,9 @@ class ImaginationAC(ImaginationLearner):
         rewards, ends = traj["reward"], values
         look = hp.model.lookahead
         heads = lookahead_heads(look, params)
-        if heads is not None:  # the heads' reward, and their value at the end
+        if heads is not None:  # the heads' reward, and their value after the last one at the end
             rewards = lookahead.reward(heads, h, look)
-            ends = values.at[-1].set(lookahead.value(heads, h[-1], look))
+            ends = values.at[-1].set(lookahead.value_after(heads, h[-1], look))
         rets = jax.lax.stop_gradient(lambda_returns(rewards, ends, ends[-1], hp.gamma, hp.lam))
         h0 = jax.lax.stop_gradient(self.model.features(carry))
         base = critic_value(critic, h0)  # V of the state each step's buttons were drawn in

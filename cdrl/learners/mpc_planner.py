@@ -22,20 +22,22 @@ import jax.numpy as jnp
 
 from cdrl.data.frames import model_obs
 from cdrl.learners.game_batch import Observation
-from cdrl.learners.imagination import imagination_config, imagined_return
-from cdrl.learners.replay_base import BUTTON_COMBOS, ReplayLearner, ReplayState, draw_buttons
-from cdrl.models.base import StepInput, Variant
+from cdrl.learners.imagination import imagination_config, imagined_return, lookahead_heads
+from cdrl.learners.replay_base import ReplayLearner, ReplayState, draw_buttons
+from cdrl.models.base import BUTTON_COMBOS, StepInput, Variant
+from cdrl.training import lookahead
 
 # A tie between plans (an untrained model scores every plan alike) is broken at random.
 JITTER = 1e-6
 
 
-def plan_rollouts(variant: Variant, params, carry, x: StepInput, horizon: int):
+def plan_rollouts(variant: Variant, params, carry, x: StepInput, horizon: int, last_frame: bool = False):
     """Every candidate plan for the real step `x` (B games: the frames o_t, `is_first`; its
     action is ignored) from the model's state `carry` before it. A plan is one of the eight
     button combinations (`BUTTON_COMBOS`) pressed at t with o_t and held `horizon` − 1 imagined
-    steps more. Returns the variant's rewards `[C, H, B]` and the states' features
-    `[C, H, B, F]` after each of a plan's steps."""
+    steps more. Returns the variant's rewards `[C, H, B]`, the states' features `[C, H, B, F]`
+    after each of a plan's steps, and the frame predicted after its last step `[C, B, H, W]`.
+    That frame is decoded where the variant imagines without it only with `last_frame`."""
     b = x.obs.shape[0]
 
     def rollout(buttons):
@@ -45,22 +47,37 @@ def plan_rollouts(variant: Variant, params, carry, x: StepInput, horizon: int):
         def body(c, _):
             carry, frame = c
             carry, out = variant.imagine_step(params, carry, frame, action)
-            frame = jax.nn.sigmoid(out["logits"]) if "logits" in out else frame
+            if "logits" in out:
+                frame = jax.nn.sigmoid(out["logits"])
+            elif last_frame:
+                frame = jax.nn.sigmoid(variant.decode(params, out["pred_code"]))
             return (carry, frame), (out["reward"], variant.features(carry))
 
-        _, (rewards, h) = jax.lax.scan(body, (first, jax.nn.sigmoid(out["logits"])), None, length=horizon - 1)
+        (_, last), (rewards, h) = jax.lax.scan(body, (first, jax.nn.sigmoid(out["logits"])), None,
+                                               length=horizon - 1)
         return (jnp.concatenate([out["reward"][None], rewards]),
-                jnp.concatenate([variant.features(first)[None], h]))
+                jnp.concatenate([variant.features(first)[None], h]), last)
 
     return jax.vmap(rollout)(jnp.asarray(BUTTON_COMBOS))
 
 
+def plan_scores(variant: Variant, look, params, carry, x: StepInput, gamma, horizon: int):
+    """`[B, C]`: the plans of `plan_rollouts` scored by their discounted return plus the
+    discounted value at their end (`imagined_return`; `look`, the look-ahead's numbers, or
+    None). With a frame value head, it values the plan's last predicted frame."""
+    heads = lookahead_heads(look, params)
+    valued = heads is not None and look.frame_value
+    rewards, h, last = plan_rollouts(variant, params, carry, x, horizon, last_frame=valued)
+    if valued:
+        ends = lookahead.frame_value(heads, last, variant.arch, look)  # [C, B]
+        return jax.vmap(lambda r, f, e: imagined_return(look, params, r, f, gamma, e))(rewards, h, ends).T
+    return jax.vmap(lambda r, f: imagined_return(look, params, r, f, gamma))(rewards, h).T
+
+
 def plan(variant: Variant, look, params, carry, x: StepInput, gamma, horizon: int, key):
-    """The plans of `plan_rollouts` scored: their discounted return plus the discounted value at
-    their end (`imagined_return`; `look`, the look-ahead's numbers, or None). Returns the
-    scores `[B, C]` and the best plan's buttons `[B, A]`, the ones to press now."""
-    rewards, h = plan_rollouts(variant, params, carry, x, horizon)
-    scores = jax.vmap(lambda r, f: imagined_return(look, params, r, f, gamma))(rewards, h).T  # [B, C]
+    """The plans of `plan_rollouts` scored (`plan_scores`). Returns the scores `[B, C]` and the
+    best plan's buttons `[B, A]`, the ones to press now."""
+    scores = plan_scores(variant, look, params, carry, x, gamma, horizon)
     best = jnp.argmax(scores + JITTER * jax.random.uniform(key, scores.shape), axis=-1)
     return scores, jnp.asarray(BUTTON_COMBOS)[best]
 

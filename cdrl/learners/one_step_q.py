@@ -13,8 +13,8 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.data.stream import Chunk
-from cdrl.models.base import Variant
-from cdrl.learners.replay_base import (BUTTON_COMBOS, ReplayConfig, ReplayLearner, ReplayState, button_entropy,
+from cdrl.models.base import BUTTON_COMBOS, Variant
+from cdrl.learners.replay_base import (ReplayConfig, ReplayLearner, ReplayState, button_entropy,
                                        critic_value, starts)
 from cdrl.training.lookahead import lambda_returns
 

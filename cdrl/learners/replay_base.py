@@ -25,13 +25,11 @@ updates, while the model learns alone (a critic learns from the start).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 from typing import Any, Callable, ClassVar
 
 import flax.struct
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from cdrl.data.frames import pixel_bce
 from cdrl.data.stream import Chunk
@@ -45,8 +43,6 @@ from cdrl.training import lookahead
 from cdrl.training.optim import HParams, OptHParams, init_opt_state
 from cdrl.training.step import TrainState, chunk_loss, guarded_update, run_once, step_inputs
 
-# Every combination of the three buttons (right, left, accelerate), pressed 1.0 or released 0.0.
-BUTTON_COMBOS = np.asarray(list(itertools.product((0.0, 1.0), repeat=3)), np.float32)
 CRITIC_HIDDEN = 128
 
 

@@ -16,17 +16,22 @@ to `jit` as a static argument. Its contract:
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from typing import Any, ClassVar
 
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cdrl.models import nets
 from cdrl.models.arch import ArchConfig
 
 Carry = Any
 Outputs = dict
+
+# Every combination of the three buttons (right, left, accelerate), pressed 1.0 or released 0.0.
+BUTTON_COMBOS = np.asarray(list(itertools.product((0.0, 1.0), repeat=3)), np.float32)
 
 
 @flax.struct.dataclass

@@ -23,7 +23,7 @@ from cdrl.models.base import Variant
 from cdrl.options import DEFAULT_RECIPE, RECIPES  # noqa: F401 (re-exported: the CLI's help and tests read them here)
 from cdrl.options import (AGENT_RECIPE, FAMILY_OVERRIDES, OFFLINE_WORLD_MODEL, PRESET_ALIASES, RECIPE_ALIASES,
                           REPLAY_OVERRIDES, SECTIONS)
-from cdrl.training.lookahead import LookaheadHParams
+from cdrl.training.lookahead import VALUE_BACKUPS, LookaheadHParams
 from cdrl.training.optim import OPTIMIZERS, SCHEDULES, HParams, OptHParams
 
 OBS_NORMS = ("none", "data")
@@ -68,6 +68,9 @@ class _RunConfigMethods:
         elif self.imagined_reward_balanced_weight > 0:
             raise ValueError(f"imagined_reward_balanced_weight {self.imagined_reward_balanced_weight!r} weighs the "
                              "imagined steps' reward error; turn the imagination on with lookahead_steps >= 1")
+        elif self.value_backup != "lambda" or self.frame_value_weight > 0:
+            raise ValueError(f"value_backup {self.value_backup!r} and frame_value_weight {self.frame_value_weight!r} "
+                             "set the look-ahead's value heads; turn the heads on with lookahead_steps >= 1")
         if self.mirror_streams and (self.kind != "offline" or self.data != "game" or self.batch < 2):
             raise ValueError(f"mirror_streams mirrors half of an offline run's streams of the built-in game (a {self.kind} "
                              f"run on data {self.data!r} with batch {self.batch}): it needs learner world_model or a "
@@ -82,7 +85,7 @@ class _RunConfigMethods:
                              "buffer)")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
                    "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "conv": FORMULATIONS,
-                   "data_policy": ("auto",) + tuple(POLICIES)}
+                   "data_policy": ("auto",) + tuple(POLICIES), "value_backup": VALUE_BACKUPS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
@@ -114,7 +117,8 @@ class _RunConfigMethods:
         return LookaheadHParams.create(steps=self.lookahead_steps, stride=self.lookahead_stride or None,
                                        head_opt=OptHParams.create("adam", lr=self.ctrl_lr, grad_clip=100.0),
                                        gamma=self.gamma, lam=self.gae_lambda, target_decay=self.value_target_decay,
-                                       head_grad=self.head_grad)
+                                       head_grad=self.head_grad, backup=self.value_backup,
+                                       frame_value=self.frame_value_weight > 0)
 
     def recipe_values(self) -> dict[str, object]:
         """The options the run's recipe sets for its variant and learner."""
@@ -181,7 +185,7 @@ class _RunConfigMethods:
             weights.update(imag_obs_bce=self.imagined_frame_weight, imag_reward_mse=self.reward_weight,
                            imag_reward_balanced=self.imagined_reward_balanced_weight,
                            reward_twohot=self.reward_head_weight, cont_bce=self.cont_weight,
-                           value_twohot=self.value_weight)
+                           value_twohot=self.value_weight, frame_value_twohot=self.frame_value_weight)
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
                               loss_weights=weights or None, feed_every=ks[0],
                               fed=max(ks) > 1 if fed is None else fed, lookahead=heads, mirror=self.mirror_streams)
@@ -231,7 +235,8 @@ RANGES: dict[str, Range] = {
                      "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
                      "horizon", "max_filter"), AT_LEAST_1),
     **dict.fromkeys(("lookahead_steps", "lookahead_stride", "imagined_frame_weight", "imagined_reward_balanced_weight",
-                     "reward_head_weight", "cont_weight", "value_weight", "head_grad"), AT_LEAST_0),
+                     "reward_head_weight", "cont_weight", "value_weight", "frame_value_weight", "head_grad"),
+                    AT_LEAST_0),
     "value_target_decay": FRACTION,
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",
                      "grad_clip", "ascent", "reward_weight", "reward_balanced_weight", "noise_std", "value_coef",

@@ -167,7 +167,8 @@ def stats_episodes(cfg: RunConfig, cache_root: Path) -> Sequence[Episode]:
     parameters collected with seed 0 (online runs too); synthetic episodes of seed 0."""
     if cfg.data == "game":
         sample = dataclasses.replace(cfg, variant="main", episodes=8, seed=0, reward_balanced_weight=0.0,
-                                     imagined_reward_balanced_weight=0.0, lookahead_steps=0, data_policy="auto")
+                                     imagined_reward_balanced_weight=0.0, lookahead_steps=0, value_backup="lambda",
+                                     frame_value_weight=0.0, data_policy="auto")
     elif cfg.data == "synthetic":
         sample = dataclasses.replace(cfg, seed=0)
     else:

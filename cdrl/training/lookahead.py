@@ -19,7 +19,15 @@ imagined one. They live in `params["lookahead"]`:
 - `cont`: the logit that the episode goes on after the step;
 - `value`: the λ-return from the state, two-hot as the reward. Its targets are real
   λ-returns of the chunk's rewards, bootstrapped by a slow copy of the head (`value_target`,
-  an exponential moving average of `value`, `update_target`).
+  an exponential moving average of `value`, `update_target`). The state h_t has seen a_t, so
+  the value is the return of a_t's own reward r_{t+1} and the rest: an action value. With
+  `backup` "max" each step bootstraps on the best of the eight buttons pressed with the next
+  real frame (Peng's Q(λ)), the value of acting greedily on it rather than the data's.
+
+With `frame_value` a fourth head reads frames, not h: `frame_value`, a small CNN of the
+encoder's shape and an MLP. It learns the return from s_{t+1} on from the model's predicted
+frame õ_{t+1} (0 after the episode's end), so a plan's predicted last frame can be valued
+(`mpc_planner`). A value of the state after a plan then reads the layout the plan leads to.
 
 The heads' gradient into the model is scaled by `head_grad` (`scale_grad`): at full scale a
 reward loss's gradient into the core is hundreds of times the frame BCE's, which holds the
@@ -32,25 +40,31 @@ import jax
 import jax.numpy as jnp
 
 from cdrl.models import nets
-from cdrl.models.base import StepInput, Variant, elementwise_bce
+from cdrl.models.base import BUTTON_COMBOS, StepInput, Variant, elementwise_bce
 from cdrl.models.controller import balanced_squared_error
 from cdrl.training.optim import OptHParams
 
+# The value's targets: the data's own λ-returns, or Peng's Q(λ) over the eight buttons.
+VALUE_BACKUPS = ("lambda", "max")
 # The names of the look-ahead loss terms (each with a weight of the same name in `HParams`).
-TERMS = ("imag_obs_bce", "imag_reward_mse", "imag_reward_balanced", "reward_twohot", "cont_bce", "value_twohot")
+TERMS = ("imag_obs_bce", "imag_reward_mse", "imag_reward_balanced", "reward_twohot", "cont_bce", "value_twohot",
+         "frame_value_twohot")
 # Their metrics beside them (weight 0): the heads' expected values against their targets.
 METRICS = ("reward_head_mse", "value_mse")
 DEFAULT_WEIGHTS = {"imag_obs_bce": 1.0, "imag_reward_mse": 1.0, "imag_reward_balanced": 0.0, "reward_twohot": 1.0,
-                   "cont_bce": 1.0, "value_twohot": 1.0, "reward_head_mse": 0.0, "value_mse": 0.0}
+                   "cont_bce": 1.0, "value_twohot": 1.0, "frame_value_twohot": 1.0, "reward_head_mse": 0.0,
+                   "value_mse": 0.0}
 
 
 @flax.struct.dataclass
 class LookaheadHParams:
     """The look-ahead's numbers. Static: `steps` K imagined from every `stride`-th real step,
     the heads' `bins` over symlog values in [-`limit`, `limit`] and their `hidden` width.
-    Traced: the heads' own optimiser `head_opt`, the discount `gamma` and `lam` of the value's
-    λ-returns, the target head's EMA `target_decay`, and `head_grad`, the scale of the heads'
-    gradient into the model. The terms' weights are `HParams.loss_weights`'s (`default_weights`)."""
+    Static too: the value's `backup` (`VALUE_BACKUPS`) and whether a `frame_value` head values
+    predicted frames. Traced: the heads' own optimiser
+    `head_opt`, the discount `gamma` and `lam` of the value's λ-returns, the target head's EMA
+    `target_decay`, and `head_grad`, the scale of the heads' gradient into the model. The terms'
+    weights are `HParams.loss_weights`'s (`default_weights`)."""
 
     head_opt: OptHParams
     gamma: jax.Array
@@ -62,11 +76,14 @@ class LookaheadHParams:
     bins: int = flax.struct.field(pytree_node=False, default=41)
     limit: float = flax.struct.field(pytree_node=False, default=4.0)
     hidden: int = flax.struct.field(pytree_node=False, default=64)
+    backup: str = flax.struct.field(pytree_node=False, default="lambda")
+    frame_value: bool = flax.struct.field(pytree_node=False, default=False)
 
     @classmethod
     def create(cls, steps: int = 3, stride: int | None = None, head_opt: OptHParams | None = None,
                gamma: float = 0.99, lam: float = 0.95, target_decay: float = 0.98, head_grad: float = 0.01,
-               bins: int = 41, limit: float = 4.0, hidden: int = 64) -> "LookaheadHParams":
+               bins: int = 41, limit: float = 4.0, hidden: int = 64, backup: str = "lambda",
+               frame_value: bool = False) -> "LookaheadHParams":
         """`stride` defaults to `steps`: K imagined steps from every K-th real step cost about
         one more pass over the chunk. `head_opt` defaults to Adam at 3e-4, the gradient's norm
         clipped at 100."""
@@ -75,10 +92,12 @@ class LookaheadHParams:
             raise ValueError(f"look-ahead steps and stride must be >= 1, got {steps} and {stride}")
         if bins < 2 or limit <= 0:
             raise ValueError(f"two-hot needs bins >= 2 and limit > 0, got {bins} and {limit}")
+        if backup not in VALUE_BACKUPS:
+            raise ValueError(f"the value's backup must be one of {', '.join(VALUE_BACKUPS)}; got {backup!r}")
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         head_opt = head_opt if head_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
         return cls(head_opt, f32(gamma), f32(lam), f32(target_decay), f32(head_grad), steps=steps, stride=stride,
-                   bins=bins, limit=limit, hidden=hidden)
+                   bins=bins, limit=limit, hidden=hidden, backup=backup, frame_value=frame_value)
 
     @staticmethod
     def default_weights() -> dict[str, float]:
@@ -125,10 +144,13 @@ def expected(logits: jax.Array, bins: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------- the heads
 
 
-def init_heads(key: jax.Array, features: int, hp: LookaheadHParams) -> dict:
-    """The reward, continuation and value heads (MLPs of one hidden layer on h) and the value's
-    target copy. The two-hot heads' last layers start at zero: they predict 0 at first."""
+def init_heads(key: jax.Array, arch, hp: LookaheadHParams) -> dict:
+    """The reward, continuation and value heads (MLPs of one hidden layer on h, of `arch`'s
+    `lstm_size`) and the value's target copy; with `hp.frame_value`, the frame value (a CNN of
+    `arch`'s encoder shape, then an MLP). The two-hot heads' last layers start at zero: they
+    predict 0 at first."""
     k_reward, k_cont, k_value = jax.random.split(key, 3)
+    features = arch.lstm_size
 
     def head(k, out, zero_last):
         p = nets.init_mlp(k, (features, hp.hidden, out), final_selu=False)
@@ -137,8 +159,14 @@ def init_heads(key: jax.Array, features: int, hp: LookaheadHParams) -> dict:
         return p
 
     value = head(k_value, hp.bins, True)
-    return {"reward": head(k_reward, hp.bins, True), "cont": head(k_cont, 1, False), "value": value,
-            "value_target": jax.tree.map(jnp.copy, value)}
+    heads = {"reward": head(k_reward, hp.bins, True), "cont": head(k_cont, 1, False), "value": value,
+             "value_target": jax.tree.map(jnp.copy, value)}
+    if hp.frame_value:
+        k_enc, k_mlp = jax.random.split(jax.random.fold_in(key, 1))
+        mlp = nets.init_mlp(k_mlp, (arch.obs_code, hp.hidden, hp.bins), final_selu=False)
+        heads["frame_value"] = {"enc": nets.init_obs_encoder(k_enc, arch),
+                                "mlp": {**mlp, "dense1": jax.tree.map(jnp.zeros_like, mlp["dense1"])}}
+    return heads
 
 
 def with_heads(variant: Variant, params: dict, key: jax.Array, hp: LookaheadHParams | None) -> dict:
@@ -148,7 +176,7 @@ def with_heads(variant: Variant, params: dict, key: jax.Array, hp: LookaheadHPar
     if not variant.has_controller:
         raise ValueError(f"the look-ahead losses imagine through a model's own actions; variant {variant.name!r} "
                          "has none (action_loop, reward_prediction or final_proposal)")
-    return {**params, "lookahead": init_heads(jax.random.fold_in(key, 7), variant.arch.lstm_size, hp)}
+    return {**params, "lookahead": init_heads(jax.random.fold_in(key, 7), variant.arch, hp)}
 
 
 def scale_grad(x: jax.Array, scale: jax.Array) -> jax.Array:
@@ -164,6 +192,26 @@ def value(heads: dict, h: jax.Array, hp: LookaheadHParams, target: bool = False)
 def reward(heads: dict, h: jax.Array, hp: LookaheadHParams) -> jax.Array:
     """The reward head's expected r_{t+1} from states h."""
     return expected(nets.mlp(heads["reward"], h, final_selu=False), hp.bin_values)
+
+
+def value_after(heads: dict, h: jax.Array, hp: LookaheadHParams) -> jax.Array:
+    """The return after the reward of the step h has taken: (V(h) − r(h)) / γ. The state h_t has
+    seen a_t, and the value's targets hold a_t's own reward r_{t+1}; a return that has already
+    counted r(h) adds γ times this, not V(h)."""
+    return (value(heads, h, hp) - reward(heads, h, hp)) / hp.gamma
+
+
+def frame_value_logits(heads: dict, frames: jax.Array, arch, hp: LookaheadHParams) -> jax.Array:
+    """The frame value's two-hot logits for frames `[N, H, W]` in [0, 1] (`arch`: the model's)."""
+    code = nets.obs_encoder(heads["frame_value"]["enc"], arch, frames)
+    return nets.mlp(heads["frame_value"]["mlp"], code, final_selu=False)
+
+
+def frame_value(heads: dict, frames: jax.Array, arch, hp: LookaheadHParams) -> jax.Array:
+    """The frame value's expected return from the states that frames `[..., H, W]` show."""
+    lead = frames.shape[:-2]
+    flat = frames.reshape((-1,) + frames.shape[-2:])
+    return expected(frame_value_logits(heads, flat, arch, hp), hp.bin_values).reshape(lead)
 
 
 def update_target(params: dict, hp: LookaheadHParams | None) -> dict:
@@ -202,23 +250,42 @@ def lambda_returns(rewards, values, last, gamma, lam, not_done=None):
 
 
 def targets(is_first: jax.Array, rewards: jax.Array, target_values: jax.Array, hp: LookaheadHParams,
-            truncated: jax.Array | None = None):
+            truncated: jax.Array | None = None, next_best: jax.Array | None = None):
     """Per real step t of a chunk `[T, B]`: whether the episode goes on after it (`cont`, known
     for t < T - 1), and the λ-return from its state (`ret`, known for t < T - 1: the last step's
     is the bootstrap), with `known` masks for both. `target_values` are the slow head's values
     after every step. An episode that a step limit cut (`truncated`, `Chunk.truncated`) goes on
     in the game: its last step bootstraps on its own state's value, r_{t+1} + γ V(h_t), as the
-    next state's is not in the chunk (Pardo et al. 2018, time limits in RL)."""
+    next state's is not in the chunk (Pardo et al. 2018, time limits in RL). `next_best`
+    `[T - 1, B]` (backup "max", `best_values`): the best button's value at each next step, which
+    then bootstraps in place of the data's own, V(h_{t+1})."""
     ended = is_first[1:]  # o_{t+1} starts a new episode: step t ended one
     cut = ended & truncated[:-1] if truncated is not None else jnp.zeros_like(ended)
     terminal = (ended & ~cut).astype(jnp.float32)
     cont = jnp.concatenate([1.0 - terminal, jnp.ones_like(terminal[:1])])
-    v_next = jnp.where(cut, target_values[:-1], target_values[1:])
+    v_next = jnp.where(cut, target_values[:-1], target_values[1:] if next_best is None else next_best)
     ret = lambda_returns(rewards[:-1], v_next, target_values[-1], hp.gamma, jnp.where(cut, 0.0, hp.lam),
                          1.0 - terminal)
     ret = jnp.concatenate([ret, target_values[-1:]])
     known = jnp.arange(is_first.shape[0])[:, None] < is_first.shape[0] - 1
     return cont, ret, jnp.broadcast_to(known, is_first.shape)
+
+
+def best_values(variant: Variant, params, hp: LookaheadHParams, carries, xs: StepInput) -> jax.Array:
+    """`[T - 1, B]`: for each real step t ≥ 1 of a chunk, the slow value head's value of the best
+    of the eight button combinations pressed with o_t from the carry before it (`carries[t - 1]`),
+    as `mpc_planner` scores one-step plans. Peng's Q(λ) bootstraps on it (backup "max")."""
+    prev = jax.tree.map(lambda x: x[:-1].reshape((-1,) + x.shape[2:]), carries)
+    obs, first = xs.obs[1:], xs.is_first[1:]
+    n = first.size
+
+    def of(buttons):
+        x = StepInput(obs=obs.reshape((n,) + obs.shape[2:]), action=jnp.broadcast_to(buttons, (n,) + buttons.shape),
+                      is_first=first.reshape(n))
+        carry, _ = variant.step(params, prev, x)
+        return value(params["lookahead"], variant.features(carry), hp, target=True)
+
+    return jnp.max(jax.vmap(of)(jnp.asarray(BUTTON_COMBOS)), axis=0).reshape(first.shape)
 
 
 def imagined_index(num_steps: int, hp: LookaheadHParams):
@@ -283,8 +350,10 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
              "imag_reward_balanced": balanced_squared_error(imag_r, rewards[index], mask=valid)}
 
     real_h = variant.features(carries)  # [T, B, F]
+    fixed = jax.lax.stop_gradient(params)
+    next_best = best_values(variant, fixed, hp, jax.lax.stop_gradient(carries), xs) if hp.backup == "max" else None
     cont, ret, known = targets(xs.is_first, rewards, value(heads, jax.lax.stop_gradient(real_h), hp, target=True), hp,
-                               truncated)
+                               truncated, next_best)
     ret = jax.lax.stop_gradient(ret)
     # The heads see the real steps [T, B] and the imagined ones [S * K, B], side by side.
     h = scale_grad(jnp.concatenate([real_h, imag_h.reshape((-1,) + imag_h.shape[2:])]), hp.head_grad)
@@ -299,5 +368,22 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
     terms["value_twohot"] = _mean(two_hot_loss(v_logits, v_target, bins), mask & v_known)
     terms["reward_head_mse"] = _mean(jnp.square(expected(r_logits, bins) - r_target), mask)
     terms["value_mse"] = _mean(jnp.square(expected(v_logits, bins) - v_target), mask & v_known)
+    terms["frame_value_twohot"] = frame_value_term(variant, heads, hp, outs, ret, known, xs.is_first, truncated) \
+        if hp.frame_value else jnp.zeros(())
     return terms
+
+
+def frame_value_term(variant: Variant, heads, hp: LookaheadHParams, outs, ret, known, is_first, truncated):
+    """The frame value's two-hot cross-entropy on a chunk: from the predicted frame õ_{t+1} of
+    each real step t, the λ-return from step t + 1 on (`ret[t + 1]`), or 0 where step t ended
+    its episode (not where a step limit cut it: that return is unknown)."""
+    t = is_first.shape[0]
+    frames = scale_grad(jax.nn.sigmoid(outs["logits"][:-1]), hp.head_grad)  # õ_1 .. õ_{T-1}
+    ended = is_first[1:]
+    cut = ended & truncated[:-1] if truncated is not None else jnp.zeros_like(ended)
+    target = jnp.where(ended, 0.0, ret[1:])
+    mask = (ended & ~cut) | (known[1:] & ~ended)
+    logits = frame_value_logits(heads, frames.reshape((-1,) + frames.shape[2:]), variant.arch, hp)
+    loss = two_hot_loss(logits.reshape((t - 1,) + ended.shape[1:] + (hp.bins,)), target, hp.bin_values)
+    return _mean(loss, mask)
 

@@ -37,15 +37,16 @@ from benchmarks.common import emit  # noqa: E402
 def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samples: int, steps: int):
     """(game, game parameters, a privileged policy): the run's planner (`mpc_planner`'s plans,
     scored by its reward head), with the value at the plans' ends `policy`'s, played out in the
-    true game from the state after the plan's buttons; for `policy` None, its value head's."""
+    true game from the state after the plan's buttons; for `policy` None, the run's own
+    planner (`plan_scores`: its value heads)."""
     import jax
     import jax.numpy as jnp
 
     from cdrl.analysis.imagination_video import load_run
     from cdrl.data.frames import model_obs
     from cdrl.evaluation.probe_ceiling import policy_value
-    from cdrl.learners.mpc_planner import game_plans, plan_rollouts
-    from cdrl.learners.replay_base import BUTTON_COMBOS
+    from cdrl.learners.mpc_planner import game_plans, plan_rollouts, plan_scores
+    from cdrl.models.base import BUTTON_COMBOS
     from cdrl.models.base import StepInput
     from cdrl.training import lookahead
     from envs.policies import Policy
@@ -61,15 +62,16 @@ def model_reward_planner(run_dir: Path, policy, gamma: float, horizon: int, samp
 
     def step(key, ps, obs, state, env_params):
         x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, 3)), is_first=ps["is_first"])
-        h = plan_rollouts(variant, params, ps["carry"], x, horizon)[1]
-        rewards = lookahead.reward(heads, h, look)[..., 0] @ discounts
-        if policy is None:
-            value = lookahead.value(heads, h[:, -1, 0], look)
+        if policy is None:  # the run's planner whole: `mpc_planner`'s scores
+            scores = plan_scores(variant, look, params, ps["carry"], x, gamma, horizon)[0]
         else:
+            h = plan_rollouts(variant, params, ps["carry"], x, horizon)[1]
+            rewards = lookahead.reward(heads, h, look)[..., 0] @ discounts
             k_plan, k_value = jax.random.split(key)
             ends, on, _ = game_plans(game, env_params, state, horizon, k_plan)
             value = policy_value(game, env_params, policy, gamma, k_value, ends, on, samples=samples, steps=steps)
-        best = combos[jnp.argmax(rewards + gamma ** horizon * value)]
+            scores = rewards + gamma ** horizon * value
+        best = combos[jnp.argmax(scores)]
         carry = variant.step(params, ps["carry"], x.replace(action=best[None]))[0]
         return best, {"carry": carry, "is_first": jnp.zeros((1,), bool)}
 

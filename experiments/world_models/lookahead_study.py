@@ -52,7 +52,9 @@ def config_of(name: str, args, seed: int):
     return RunConfig(variant=args.variant, learner="world_model", preset="small", max_filter=args.max_filter,
                      level=args.level, steps=args.steps, seed=seed, eval_every=max(1, args.steps // 2),
                      checkpoint_every=max(1, args.steps // 2), tensorboard=False, head_grad=args.head_grad,
-                     grad_clip=args.grad_clip, gamma=args.gamma, episodes=args.data_episodes,
+                     grad_clip=args.grad_clip, gamma=args.gamma, gae_lambda=args.lam, value_backup=args.value_backup,
+                     frame_value_weight=args.frame_value,
+                     episodes=args.data_episodes,
                      data_policy=args.data_policy, mirror_streams=args.mirror_streams,
                      **options_of(name, args))
 
@@ -95,6 +97,10 @@ def main(argv=None) -> int:
     parser.add_argument("--balanced", type=float, default=0.003, help="full_bal, full_bal_imag: the balanced weight")
     parser.add_argument("--grad-clip", type=float, default=0.0, help="the model's global gradient norm clip (0: none)")
     parser.add_argument("--gamma", type=float, default=0.99, help="the value's discount (cdrl's --gamma)")
+    parser.add_argument("--lam", type=float, default=0.95, help="the value's lambda (cdrl's --gae-lambda)")
+    parser.add_argument("--value-backup", default="lambda", help="the value's targets (cdrl's --value-backup)")
+    parser.add_argument("--frame-value", type=float, default=0.0,
+                        help="the weight of the frame value head (cdrl's --frame-value-weight; 0: none)")
     parser.add_argument("--data-policy", default="auto", help="the policy that plays the data (cdrl's --data-policy)")
     parser.add_argument("--mirror-streams", action="store_true", help="half of the streams see their episodes mirrored")
     parser.add_argument("--data-episodes", type=int, default=60, help="episodes the data set holds (cdrl's --episodes)")
@@ -110,7 +116,9 @@ def main(argv=None) -> int:
     result = {"experiment": "lookahead_study", "variant": args.variant, "preset": "small",
               "max_filter": args.max_filter, "level": args.level, "steps": args.steps,
               "lookahead_steps": args.lookahead_steps, "head_grad": args.head_grad, "grad_clip": args.grad_clip,
-              "gamma": args.gamma, "data_episodes": args.data_episodes, "data_policy": args.data_policy,
+              "gamma": args.gamma, "lam": args.lam, "value_backup": args.value_backup,
+              "frame_value": args.frame_value,
+              "data_episodes": args.data_episodes, "data_policy": args.data_policy,
               "mirror_streams": args.mirror_streams, "configs": {}}
     for name in args.configs:
         rows = {}
