@@ -193,3 +193,23 @@ def test_the_oracle_planner_presses_what_the_true_game_rewards():
     uniform = get_policy("uniform")
     random = play.summarize(*play.play(g, params, uniform.init, uniform.step, SEEDS, games.MAX_STEPS))
     assert planned["ci95"][0] > random["ci95"][1], (planned, random)
+
+
+def test_the_branch_probe_compares_the_eight_scores_of_each_state():
+    """`branch_value_probe.scores`: learnt scores equal to the true ones correlate 1 within each
+    state and pick its best; reversed ones correlate −1 and never pick it; states after the
+    game's end are left out."""
+    from experiments.controller import branch_value_probe as bvp
+
+    rng = np.random.default_rng(0)
+    true_r, true_v = rng.normal(size=(2, 5, 8)), rng.normal(size=(2, 5, 8))
+    on = np.ones((2, 5), bool)
+    on[1, 3:] = False
+    same = bvp.scores((true_r, true_v, true_r, true_v, on))
+    assert same["states"] == 8
+    for part in ("score", "reward", "value", "steer_score", "steer_value"):
+        assert same[part]["corr_within"] == pytest.approx(1.0) and same[part]["best_agrees"] == 1.0
+        assert same[part]["corr_levels"] == pytest.approx(1.0)
+    flipped = bvp.scores((-true_r, -true_v, true_r, true_v, on))
+    assert flipped["score"]["corr_within"] == pytest.approx(-1.0) and flipped["score"]["best_agrees"] == 0.0
+    assert flipped["value"]["spread_learnt"] == pytest.approx(flipped["value"]["spread_true"])
