@@ -130,6 +130,9 @@ class LossOptions:
     frame_value_weight: float = _opt(0.0, "look-ahead: weight of a value head on the model's predicted next frame "
                                           "(a CNN of its own; 0: no such head); the planner values its plans' "
                                           "last predicted frame with it")
+    advantage_weight: float = _opt(0.0, "look-ahead: weight of an advantage head A(h) on the model's state, its "
+                                        "target the return less the mean of the eight buttons' values (0: no such "
+                                        "head); the planner then ranks one-step plans by it")
     value_target_decay: float = _opt(0.98, "look-ahead: per update, the value's target copy keeps this share of "
                                            "itself and takes the rest from the value head", traced=True)
 

@@ -47,6 +47,7 @@ ACCEPTED = {
     ("imagined_reward_balanced_weight", "0"),  # no balanced reward term at the imagined steps (the default)
     ("value_weight", "0"),  # no value head's loss
     ("frame_value_weight", "0"),  # no frame value head (the default)
+    ("advantage_weight", "0"),  # no advantage head (the default)
     ("head_grad", "0"),  # the heads learn without moving the model
     ("value_target_decay", "0"),  # the value's target is the head itself
 }

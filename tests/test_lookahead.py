@@ -84,15 +84,16 @@ def _by_hand(variant, params, hp, chunk, weights):
         preds.append(jax.nn.sigmoid(out["logits"]))
     real_h = np.stack([np.asarray(variant.features(c)) for c in carries])  # [T, B, F]
     target_v = np.stack([[decode(mlp(heads["value_target"], real_h[t, b])) for b in range(B)] for t in range(T)])
-    boot = target_v  # what V_{t+1} bootstraps on: the data's own buttons, or the best of the eight
-    if hp.backup == "max":
-        boot = np.full((T, B), -np.inf)
-        for t in range(1, T):
-            for combo in BUTTON_COMBOS:
-                c, _ = variant.step(params, carries[t - 1], StepInput(
-                    obs=jnp.asarray(obs[t]), action=jnp.tile(jnp.asarray(combo), (B, 1)), is_first=jnp.asarray(first[t])))
-                h = np.asarray(variant.features(c))
-                boot[t] = np.maximum(boot[t], [decode(mlp(heads["value_target"], h[b])) for b in range(B)])
+    # each of the eight buttons pressed with o_t from the carry before it: the slow value there
+    branch = np.zeros((len(BUTTON_COMBOS), T, B))
+    for t in range(1, T) if hp.backup == "max" or hp.advantage else ():
+        for i, combo in enumerate(BUTTON_COMBOS):
+            c, _ = variant.step(params, carries[t - 1], StepInput(
+                obs=jnp.asarray(obs[t]), action=jnp.tile(jnp.asarray(combo), (B, 1)), is_first=jnp.asarray(first[t])))
+            h = np.asarray(variant.features(c))
+            branch[i, t] = [decode(mlp(heads["value_target"], h[b])) for b in range(B)]
+    # what V_{t+1} bootstraps on: the data's own buttons, or the best of the eight
+    boot = branch.max(axis=0) if hp.backup == "max" else target_v
     ret = np.zeros((T, B))
     for b in range(B):
         ret[T - 1, b] = target_v[T - 1, b]
@@ -133,6 +134,9 @@ def _by_hand(variant, params, hp, chunk, weights):
             c_bce.append(np.logaddexp(0, zc) - cont * zc)
             v_ce.append(twohot_ce(zv, ret_t))
             v_mse.append((decode(zv) - ret_t) ** 2)
+    # the advantage: on the real steps t >= 1 with a known return, that return less the eight buttons' mean value
+    adv = [(mlp(heads["advantage"], real_h[t, b])[0] - (ret[t, b] - branch[:, t, b].mean())) ** 2
+           for t in range(1, T - 1) for b in range(B) if hp.advantage and not first[t, b]]
     # the frame value: from the predicted frame of step t, the return from t + 1 on (0 after an episode's end)
     f_ce = []
     if hp.frame_value:
@@ -150,6 +154,7 @@ def _by_hand(variant, params, hp, chunk, weights):
     return {"imag_obs_bce": np.mean(imag_bce), "imag_reward_mse": np.mean(imag_mse), "imag_reward_balanced": balanced,
             "reward_twohot": np.mean(r_ce),
             "cont_bce": np.mean(c_bce), "value_twohot": np.mean(v_ce), "frame_value_twohot": np.mean(f_ce or [0.0]),
+            "advantage_mse": np.mean(adv or [0.0]),
             "reward_head_mse": np.mean(r_mse),
             "value_mse": np.mean(v_mse)}
 
@@ -158,17 +163,20 @@ def _by_hand(variant, params, hp, chunk, weights):
                                                                ("final_proposal", 2, 3, False, "lambda"),
                                                                ("final_proposal", 3, 2, True, "lambda"),
                                                                ("final_proposal", 2, 3, True, "max"),
-                                                               ("reward_prediction", 2, 2, True, "frame")])
+                                                               ("reward_prediction", 2, 2, True, "frame"),
+                                                               ("final_proposal", 3, 3, False, "advantage")])
 def test_every_term_equals_a_plain_loop_over_starts_and_steps(name, steps, stride, truncated, backup):
     """Imagined steps stop at the chunk's end and at an episode start; the value's targets are
     λ-returns of the target head's values on the real states (backup "max": Peng's Q(λ), each
     step bootstrapping on the best of the eight buttons pressed with the next real frame); the
     heads score the real steps and every imagined one. An episode its step limit cut
     (`truncated`) goes on: its last step bootstraps on its own state's value. The frame value
-    ("frame") learns from each predicted frame the return from the step after, 0 after an end."""
+    ("frame") learns from each predicted frame the return from the step after, 0 after an end;
+    the advantage ("advantage") the return less the mean of the eight buttons' values."""
     variant = make_variant(name, TINY)
-    hp = la.LookaheadHParams.create(steps=steps, stride=stride, gamma=0.9, lam=0.8, backup=backup.replace("frame", "lambda"),
-                                    frame_value=backup == "frame")
+    hp = la.LookaheadHParams.create(steps=steps, stride=stride, gamma=0.9, lam=0.8,
+                                    backup=backup if backup in la.VALUE_BACKUPS else "lambda",
+                                    frame_value=backup == "frame", advantage=backup == "advantage")
     params = la.with_heads(variant, variant.init(jax.random.PRNGKey(3)), jax.random.PRNGKey(4), hp)
     # non-zero heads, and a target copy that differs from the head, so every path counts
     params["lookahead"] = jax.tree.map(lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(x.size), x.shape),
@@ -229,7 +237,8 @@ def test_look_ahead_needs_a_model_that_acts_and_refuses_multi_step_feeding():
     with pytest.raises(ValueError, match="lookahead_steps >= 1"):
         RunConfig(variant="final_proposal", learner="world_model", imagined_reward_balanced_weight=0.003)
 
-    with pytest.raises(ValueError, match="value_backup 'max' and frame_value_weight 0.0 set .*lookahead_steps >= 1"):
+    with pytest.raises(ValueError, match="value_backup 'max', frame_value_weight 0.0 and advantage_weight 0.0 set "
+                                         ".*lookahead_steps >= 1"):
         RunConfig(variant="final_proposal", learner="world_model", value_backup="max")
     with pytest.raises(ValueError, match="value_backup must be one of lambda, max; got 'best'"):
         RunConfig(variant="final_proposal", learner="world_model", lookahead_steps=2, value_backup="best")

@@ -49,6 +49,13 @@ def _by_hand(variant, look, params, carry, x):
             r = np.asarray(out["reward"]) if look is None else _np_expected(params["lookahead"]["reward"], h,
                                                                             look.bin_values)
             scores[:, c] += GAMMA ** k * r
+            if k == 0 and look is not None and look.advantage:  # one-step plans, by the advantage alone
+                p = params["lookahead"]["advantage"]
+                first_a = np.asarray(jax.nn.selu(h @ p["dense0"]["kernel"] + p["dense0"]["bias"])
+                                     @ p["dense1"]["kernel"] + p["dense1"]["bias"])[:, 0]
+        if look is not None and look.advantage:
+            scores[:, c] = first_a
+            continue
         if look is not None and look.frame_value:  # the frame value of the last predicted frame
             fv = params["lookahead"]["frame_value"]
             code = np.asarray(nets.obs_encoder(fv["enc"], variant.arch, fr))
@@ -60,19 +67,22 @@ def _by_hand(variant, look, params, carry, x):
 
 
 @pytest.mark.parametrize("name, heads", [("final_proposal", "value"), ("final_proposal", None),
-                                         ("reward_prediction", "value"), ("final_proposal", "frame_value")])
+                                         ("reward_prediction", "value"), ("final_proposal", "frame_value"),
+                                         ("reward_prediction", "advantage")])
 def test_the_plans_scores_are_the_held_buttons_predicted_returns_plus_the_value(name, heads):
     """A plan's score: its buttons pressed with the real frame (the model's real step from the
     state before it), held through the imagined steps after; the best plan's buttons press now.
     The value at its end: the value head's after the last reward, or the frame value of the
-    last predicted frame."""
+    last predicted frame. With an advantage head the plans are one step, scored by it alone."""
     variant = make_variant(name, TINY)
-    look = la.LookaheadHParams.create(steps=2, frame_value=heads == "frame_value") if heads else None
+    look = la.LookaheadHParams.create(steps=2, frame_value=heads == "frame_value",
+                                      advantage=heads == "advantage") if heads else None
     key = jax.random.PRNGKey(0)
     params = la.with_heads(variant, variant.init(key), key, look)
     if heads:  # heads that predict something: random last layers (they start at zero)
         for i, p in enumerate((params["lookahead"]["reward"], params["lookahead"]["value"],
-                               params["lookahead"].get("frame_value", {}).get("mlp"))):
+                               params["lookahead"].get("frame_value", {}).get("mlp"),
+                               params["lookahead"].get("advantage"))):
             if p is not None:
                 p["dense1"]["kernel"] = 0.3 * jax.random.normal(jax.random.PRNGKey(i + 1), p["dense1"]["kernel"].shape)
     frames = jax.random.uniform(jax.random.PRNGKey(5), (2, B, TINY.image_size, TINY.image_size))

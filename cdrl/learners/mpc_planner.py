@@ -64,8 +64,11 @@ def plan_rollouts(variant: Variant, params, carry, x: StepInput, horizon: int, l
 def plan_scores(variant: Variant, look, params, carry, x: StepInput, gamma, horizon: int):
     """`[B, C]`: the plans of `plan_rollouts` scored by their discounted return plus the
     discounted value at their end (`imagined_return`; `look`, the look-ahead's numbers, or
-    None). With a frame value head, it values the plan's last predicted frame."""
+    None). With a frame value head, it values the plan's last predicted frame. With an
+    advantage head the plans are one step (`horizon` 1), each scored by the advantage A(h)."""
     heads = lookahead_heads(look, params)
+    if heads is not None and look.advantage:  # one-step plans, ranked by the advantage of their buttons
+        return lookahead.advantage(heads, plan_rollouts(variant, params, carry, x, 1)[1][:, 0]).T
     valued = heads is not None and look.frame_value
     rewards, h, last = plan_rollouts(variant, params, carry, x, horizon, last_frame=valued)
     if valued:

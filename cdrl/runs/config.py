@@ -68,9 +68,10 @@ class _RunConfigMethods:
         elif self.imagined_reward_balanced_weight > 0:
             raise ValueError(f"imagined_reward_balanced_weight {self.imagined_reward_balanced_weight!r} weighs the "
                              "imagined steps' reward error; turn the imagination on with lookahead_steps >= 1")
-        elif self.value_backup != "lambda" or self.frame_value_weight > 0:
-            raise ValueError(f"value_backup {self.value_backup!r} and frame_value_weight {self.frame_value_weight!r} "
-                             "set the look-ahead's value heads; turn the heads on with lookahead_steps >= 1")
+        elif self.value_backup != "lambda" or self.frame_value_weight > 0 or self.advantage_weight > 0:
+            raise ValueError(f"value_backup {self.value_backup!r}, frame_value_weight {self.frame_value_weight!r} and "
+                             f"advantage_weight {self.advantage_weight!r} set the look-ahead's value heads; turn the "
+                             "heads on with lookahead_steps >= 1")
         if self.mirror_streams and (self.kind != "offline" or self.data != "game" or self.batch < 2):
             raise ValueError(f"mirror_streams mirrors half of an offline run's streams of the built-in game (a {self.kind} "
                              f"run on data {self.data!r} with batch {self.batch}): it needs learner world_model or a "
@@ -109,6 +110,9 @@ class _RunConfigMethods:
         if self.feed_curriculum != (1,):
             raise ValueError(f"lookahead_steps and multistep {self.multistep!r} both train on the model's own "
                              "predictions; choose one")
+        if self.advantage_weight > 0 and learner == "mpc_planner" and self.horizon != 1:
+            raise ValueError(f"advantage_weight {self.advantage_weight!r} ranks one-step plans; mpc_planner's "
+                             f"horizon must be 1, got {self.horizon}")
 
     def lookahead_hparams(self):
         """The look-ahead's numbers (`cdrl.training.lookahead.LookaheadHParams`), None when off."""
@@ -118,7 +122,7 @@ class _RunConfigMethods:
                                        head_opt=OptHParams.create("adam", lr=self.ctrl_lr, grad_clip=100.0),
                                        gamma=self.gamma, lam=self.gae_lambda, target_decay=self.value_target_decay,
                                        head_grad=self.head_grad, backup=self.value_backup,
-                                       frame_value=self.frame_value_weight > 0)
+                                       frame_value=self.frame_value_weight > 0, advantage=self.advantage_weight > 0)
 
     def recipe_values(self) -> dict[str, object]:
         """The options the run's recipe sets for its variant and learner."""
@@ -185,7 +189,8 @@ class _RunConfigMethods:
             weights.update(imag_obs_bce=self.imagined_frame_weight, imag_reward_mse=self.reward_weight,
                            imag_reward_balanced=self.imagined_reward_balanced_weight,
                            reward_twohot=self.reward_head_weight, cont_bce=self.cont_weight,
-                           value_twohot=self.value_weight, frame_value_twohot=self.frame_value_weight)
+                           value_twohot=self.value_weight, frame_value_twohot=self.frame_value_weight,
+                           advantage_mse=self.advantage_weight)
         return HParams.create(variant, opt=self.opt_hparams(), diverge_threshold=self.diverge_threshold,
                               loss_weights=weights or None, feed_every=ks[0],
                               fed=max(ks) > 1 if fed is None else fed, lookahead=heads, mirror=self.mirror_streams)
@@ -235,7 +240,8 @@ RANGES: dict[str, Range] = {
                      "action_dim", "eval_episodes", "ppo_epochs", "ppo_minibatches", "replay", "model_updates",
                      "horizon", "max_filter"), AT_LEAST_1),
     **dict.fromkeys(("lookahead_steps", "lookahead_stride", "imagined_frame_weight", "imagined_reward_balanced_weight",
-                     "reward_head_weight", "cont_weight", "value_weight", "frame_value_weight", "head_grad"),
+                     "reward_head_weight", "cont_weight", "value_weight", "frame_value_weight", "advantage_weight",
+                     "head_grad"),
                     AT_LEAST_0),
     "value_target_decay": FRACTION,
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",

@@ -168,7 +168,7 @@ def stats_episodes(cfg: RunConfig, cache_root: Path) -> Sequence[Episode]:
     if cfg.data == "game":
         sample = dataclasses.replace(cfg, variant="main", episodes=8, seed=0, reward_balanced_weight=0.0,
                                      imagined_reward_balanced_weight=0.0, lookahead_steps=0, value_backup="lambda",
-                                     frame_value_weight=0.0, data_policy="auto")
+                                     frame_value_weight=0.0, advantage_weight=0.0, data_policy="auto")
     elif cfg.data == "synthetic":
         sample = dataclasses.replace(cfg, seed=0)
     else:

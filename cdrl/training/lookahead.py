@@ -29,6 +29,10 @@ encoder's shape and an MLP. It learns the return from s_{t+1} on from the model'
 frame õ_{t+1} (0 after the episode's end), so a plan's predicted last frame can be valued
 (`mpc_planner`). A value of the state after a plan then reads the layout the plan leads to.
 
+With `advantage` a fifth head A(h_t) learns the λ-return less the mean of the slow value
+head's values of the eight buttons at the same state (`branch_values`): the buttons' contrast
+without the state's level (Baird's advantage learning; Wang et al. 2016's dueling heads).
+
 The heads' gradient into the model is scaled by `head_grad` (`scale_grad`): at full scale a
 reward loss's gradient into the core is hundreds of times the frame BCE's, which holds the
 frames at their mean.
@@ -48,11 +52,12 @@ from cdrl.training.optim import OptHParams
 VALUE_BACKUPS = ("lambda", "max")
 # The names of the look-ahead loss terms (each with a weight of the same name in `HParams`).
 TERMS = ("imag_obs_bce", "imag_reward_mse", "imag_reward_balanced", "reward_twohot", "cont_bce", "value_twohot",
-         "frame_value_twohot")
+         "frame_value_twohot", "advantage_mse")
 # Their metrics beside them (weight 0): the heads' expected values against their targets.
 METRICS = ("reward_head_mse", "value_mse")
 DEFAULT_WEIGHTS = {"imag_obs_bce": 1.0, "imag_reward_mse": 1.0, "imag_reward_balanced": 0.0, "reward_twohot": 1.0,
-                   "cont_bce": 1.0, "value_twohot": 1.0, "frame_value_twohot": 1.0, "reward_head_mse": 0.0,
+                   "cont_bce": 1.0, "value_twohot": 1.0, "frame_value_twohot": 1.0, "advantage_mse": 1.0,
+                   "reward_head_mse": 0.0,
                    "value_mse": 0.0}
 
 
@@ -60,11 +65,11 @@ DEFAULT_WEIGHTS = {"imag_obs_bce": 1.0, "imag_reward_mse": 1.0, "imag_reward_bal
 class LookaheadHParams:
     """The look-ahead's numbers. Static: `steps` K imagined from every `stride`-th real step,
     the heads' `bins` over symlog values in [-`limit`, `limit`] and their `hidden` width.
-    Static too: the value's `backup` (`VALUE_BACKUPS`) and whether a `frame_value` head values
-    predicted frames. Traced: the heads' own optimiser
-    `head_opt`, the discount `gamma` and `lam` of the value's λ-returns, the target head's EMA
-    `target_decay`, and `head_grad`, the scale of the heads' gradient into the model. The terms'
-    weights are `HParams.loss_weights`'s (`default_weights`)."""
+    Static too: the value's `backup` (`VALUE_BACKUPS`), whether a `frame_value` head values
+    predicted frames and whether an `advantage` head contrasts the buttons of one state.
+    Traced: the heads' own optimiser `head_opt`, the discount `gamma` and `lam` of the value's
+    λ-returns, the target head's EMA `target_decay`, and `head_grad`, the scale of the heads'
+    gradient into the model. The terms' weights are `HParams.loss_weights`'s (`default_weights`)."""
 
     head_opt: OptHParams
     gamma: jax.Array
@@ -78,12 +83,13 @@ class LookaheadHParams:
     hidden: int = flax.struct.field(pytree_node=False, default=64)
     backup: str = flax.struct.field(pytree_node=False, default="lambda")
     frame_value: bool = flax.struct.field(pytree_node=False, default=False)
+    advantage: bool = flax.struct.field(pytree_node=False, default=False)
 
     @classmethod
     def create(cls, steps: int = 3, stride: int | None = None, head_opt: OptHParams | None = None,
                gamma: float = 0.99, lam: float = 0.95, target_decay: float = 0.98, head_grad: float = 0.01,
                bins: int = 41, limit: float = 4.0, hidden: int = 64, backup: str = "lambda",
-               frame_value: bool = False) -> "LookaheadHParams":
+               frame_value: bool = False, advantage: bool = False) -> "LookaheadHParams":
         """`stride` defaults to `steps`: K imagined steps from every K-th real step cost about
         one more pass over the chunk. `head_opt` defaults to Adam at 3e-4, the gradient's norm
         clipped at 100."""
@@ -97,7 +103,8 @@ class LookaheadHParams:
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         head_opt = head_opt if head_opt is not None else OptHParams.create("adam", lr=3e-4, grad_clip=100.0)
         return cls(head_opt, f32(gamma), f32(lam), f32(target_decay), f32(head_grad), steps=steps, stride=stride,
-                   bins=bins, limit=limit, hidden=hidden, backup=backup, frame_value=frame_value)
+                   bins=bins, limit=limit, hidden=hidden, backup=backup, frame_value=frame_value,
+                   advantage=advantage)
 
     @staticmethod
     def default_weights() -> dict[str, float]:
@@ -166,6 +173,8 @@ def init_heads(key: jax.Array, arch, hp: LookaheadHParams) -> dict:
         mlp = nets.init_mlp(k_mlp, (arch.obs_code, hp.hidden, hp.bins), final_selu=False)
         heads["frame_value"] = {"enc": nets.init_obs_encoder(k_enc, arch),
                                 "mlp": {**mlp, "dense1": jax.tree.map(jnp.zeros_like, mlp["dense1"])}}
+    if hp.advantage:
+        heads["advantage"] = head(jax.random.fold_in(key, 2), 1, True)
     return heads
 
 
@@ -271,10 +280,11 @@ def targets(is_first: jax.Array, rewards: jax.Array, target_values: jax.Array, h
     return cont, ret, jnp.broadcast_to(known, is_first.shape)
 
 
-def best_values(variant: Variant, params, hp: LookaheadHParams, carries, xs: StepInput) -> jax.Array:
-    """`[T - 1, B]`: for each real step t ≥ 1 of a chunk, the slow value head's value of the best
+def branch_values(variant: Variant, params, hp: LookaheadHParams, carries, xs: StepInput) -> jax.Array:
+    """`[8, T - 1, B]`: for each real step t ≥ 1 of a chunk, the slow value head's value of each
     of the eight button combinations pressed with o_t from the carry before it (`carries[t - 1]`),
-    as `mpc_planner` scores one-step plans. Peng's Q(λ) bootstraps on it (backup "max")."""
+    as `mpc_planner` scores one-step plans. Peng's Q(λ) bootstraps on their best (backup "max");
+    the advantage's baseline is their mean."""
     prev = jax.tree.map(lambda x: x[:-1].reshape((-1,) + x.shape[2:]), carries)
     obs, first = xs.obs[1:], xs.is_first[1:]
     n = first.size
@@ -285,7 +295,7 @@ def best_values(variant: Variant, params, hp: LookaheadHParams, carries, xs: Ste
         carry, _ = variant.step(params, prev, x)
         return value(params["lookahead"], variant.features(carry), hp, target=True)
 
-    return jnp.max(jax.vmap(of)(jnp.asarray(BUTTON_COMBOS)), axis=0).reshape(first.shape)
+    return jax.vmap(of)(jnp.asarray(BUTTON_COMBOS)).reshape((-1,) + first.shape)
 
 
 def imagined_index(num_steps: int, hp: LookaheadHParams):
@@ -351,7 +361,9 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
 
     real_h = variant.features(carries)  # [T, B, F]
     fixed = jax.lax.stop_gradient(params)
-    next_best = best_values(variant, fixed, hp, jax.lax.stop_gradient(carries), xs) if hp.backup == "max" else None
+    branches = branch_values(variant, fixed, hp, jax.lax.stop_gradient(carries), xs) \
+        if hp.backup == "max" or hp.advantage else None
+    next_best = jnp.max(branches, axis=0) if hp.backup == "max" else None
     cont, ret, known = targets(xs.is_first, rewards, value(heads, jax.lax.stop_gradient(real_h), hp, target=True), hp,
                                truncated, next_best)
     ret = jax.lax.stop_gradient(ret)
@@ -370,7 +382,20 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
     terms["value_mse"] = _mean(jnp.square(expected(v_logits, bins) - v_target), mask & v_known)
     terms["frame_value_twohot"] = frame_value_term(variant, heads, hp, outs, ret, known, xs.is_first, truncated) \
         if hp.frame_value else jnp.zeros(())
+    if hp.advantage:
+        # A(h_t) against the λ-return less the mean of the eight buttons' values at the same state
+        a = nets.mlp(heads["advantage"], h[1:steps_t], final_selu=False)[..., 0]
+        terms["advantage_mse"] = _mean(jnp.square(a - (ret[1:] - jnp.mean(branches, axis=0))),
+                                       known[1:] & ~xs.is_first[1:])
+    else:
+        terms["advantage_mse"] = jnp.zeros(())
     return terms
+
+
+def advantage(heads: dict, h: jax.Array) -> jax.Array:
+    """The advantage head's A(h): the return of the buttons h has taken less the mean over the
+    eight of the state before them."""
+    return nets.mlp(heads["advantage"], h, final_selu=False)[..., 0]
 
 
 def frame_value_term(variant: Variant, heads, hp: LookaheadHParams, outs, ret, known, is_first, truncated):

@@ -61,7 +61,9 @@ def branch_trace(run_dir: Path, policy_name: str, gamma: float, games: int, leng
             x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, 3)), is_first=first)
             _, h, last = plan_rollouts(variant, params, carry, x, horizon, last_frame=look.frame_value)
             r_hat = lookahead.reward(heads, h, look)[:, :, 0] @ (gamma ** jnp.arange(horizon))  # [8]
-            if look.frame_value:
+            if look.advantage:  # the planner ranks by the advantage alone
+                r_hat, v_hat = jnp.zeros_like(r_hat), lookahead.advantage(heads, h[:, 0, 0]) / gamma ** horizon
+            elif look.frame_value:
                 v_hat = lookahead.frame_value(heads, last, variant.arch, look)[:, 0]
             else:
                 v_hat = lookahead.value_after(heads, h[:, -1, 0], look)

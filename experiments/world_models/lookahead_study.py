@@ -53,7 +53,7 @@ def config_of(name: str, args, seed: int):
                      level=args.level, steps=args.steps, seed=seed, eval_every=max(1, args.steps // 2),
                      checkpoint_every=max(1, args.steps // 2), tensorboard=False, head_grad=args.head_grad,
                      grad_clip=args.grad_clip, gamma=args.gamma, gae_lambda=args.lam, value_backup=args.value_backup,
-                     frame_value_weight=args.frame_value,
+                     frame_value_weight=args.frame_value, advantage_weight=args.advantage,
                      episodes=args.data_episodes,
                      data_policy=args.data_policy, mirror_streams=args.mirror_streams,
                      **options_of(name, args))
@@ -101,6 +101,8 @@ def main(argv=None) -> int:
     parser.add_argument("--value-backup", default="lambda", help="the value's targets (cdrl's --value-backup)")
     parser.add_argument("--frame-value", type=float, default=0.0,
                         help="the weight of the frame value head (cdrl's --frame-value-weight; 0: none)")
+    parser.add_argument("--advantage", type=float, default=0.0,
+                        help="the weight of the advantage head (cdrl's --advantage-weight; 0: none)")
     parser.add_argument("--data-policy", default="auto", help="the policy that plays the data (cdrl's --data-policy)")
     parser.add_argument("--mirror-streams", action="store_true", help="half of the streams see their episodes mirrored")
     parser.add_argument("--data-episodes", type=int, default=60, help="episodes the data set holds (cdrl's --episodes)")
@@ -117,7 +119,7 @@ def main(argv=None) -> int:
               "max_filter": args.max_filter, "level": args.level, "steps": args.steps,
               "lookahead_steps": args.lookahead_steps, "head_grad": args.head_grad, "grad_clip": args.grad_clip,
               "gamma": args.gamma, "lam": args.lam, "value_backup": args.value_backup,
-              "frame_value": args.frame_value,
+              "frame_value": args.frame_value, "advantage": args.advantage,
               "data_episodes": args.data_episodes, "data_policy": args.data_policy,
               "mirror_streams": args.mirror_streams, "configs": {}}
     for name in args.configs:
