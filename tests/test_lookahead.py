@@ -1,6 +1,6 @@
 """The look-ahead losses (`cdrl.training.lookahead`) against plain written-out loops: two-hot
-codes, and every term of a chunk computed start by start and step by step in Python;
-the heads' own optimiser and the target copy."""
+codes (`cdrl.training.twohot`), and every term of a chunk computed start by start and step by
+step in Python; the heads' own optimiser and the target copy."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,6 +11,7 @@ from cdrl.models import TINY, StepInput, make_variant, nets
 from cdrl.models.base import BUTTON_COMBOS
 from cdrl.runs.config import RunConfig
 from cdrl.training import lookahead as la
+from cdrl.training import twohot as th
 from cdrl.training.optim import HParams
 from cdrl.training.step import chunk_loss, init_state, train_step
 
@@ -32,21 +33,21 @@ def _chunk(seed=0, truncated=False):
 
 def test_two_hot_puts_its_mass_on_the_two_nearest_bins_and_keeps_the_mean():
     bins = jnp.linspace(-2.0, 2.0, 5)  # -2 -1 0 1 2
-    code = np.asarray(la.two_hot(jnp.asarray([0.25, -1.0, 7.0, -9.0]), bins))
+    code = np.asarray(th.two_hot(jnp.asarray([0.25, -1.0, 7.0, -9.0]), bins))
     np.testing.assert_allclose(code[0], [0, 0, 0.75, 0.25, 0], atol=1e-6)
     np.testing.assert_allclose(code[1], [0, 1, 0, 0, 0], atol=1e-6)
     np.testing.assert_allclose(code[2], [0, 0, 0, 0, 1], atol=1e-6)  # clipped to the ends
     np.testing.assert_allclose(code[3], [1, 0, 0, 0, 0], atol=1e-6)
     y = jnp.linspace(-1.9, 1.9, 17)
-    np.testing.assert_allclose(la.two_hot(y, bins) @ bins, y, atol=1e-5)
+    np.testing.assert_allclose(th.two_hot(y, bins) @ bins, y, atol=1e-5)
 
 
 def test_a_head_that_puts_its_logits_on_the_two_hot_code_predicts_the_value():
     bins = la.LookaheadHParams.create().bin_values
     x = jnp.asarray([-3.0, -0.5, 0.0, 0.5, 12.0])
-    logits = jnp.log(la.two_hot(la.symlog(x), bins) + 1e-12)
-    np.testing.assert_allclose(la.expected(logits, bins), x, rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(la.symexp(la.symlog(x)), x, rtol=1e-6)
+    logits = jnp.log(th.two_hot(th.symlog(x), bins) + 1e-12)
+    np.testing.assert_allclose(th.expected(logits, bins), x, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(th.symexp(th.symlog(x)), x, rtol=1e-6)
 
 
 def _by_hand(variant, params, hp, chunk, weights):

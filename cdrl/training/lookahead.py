@@ -47,6 +47,7 @@ from cdrl.models import nets
 from cdrl.models.base import BUTTON_COMBOS, StepInput, Variant, elementwise_bce
 from cdrl.models.controller import balanced_squared_error
 from cdrl.training.optim import OptHParams
+from cdrl.training.twohot import expected, two_hot_loss
 
 # The value's targets: the data's own λ-returns, or Peng's Q(λ) over the eight buttons.
 VALUE_BACKUPS = ("lambda", "max")
@@ -117,37 +118,6 @@ class LookaheadHParams:
         return jnp.linspace(-self.limit, self.limit, self.bins)
 
 
-# --------------------------------------------------------------------------- two-hot over symlog bins
-
-
-def symlog(x: jax.Array) -> jax.Array:
-    return jnp.sign(x) * jnp.log1p(jnp.abs(x))
-
-
-def symexp(x: jax.Array) -> jax.Array:
-    return jnp.sign(x) * jnp.expm1(jnp.abs(x))
-
-
-def two_hot(y: jax.Array, bins: jax.Array) -> jax.Array:
-    """`[..., N]`: y (clipped to the bins) split between its two nearest `bins`, each weighted by
-    its nearness, so that the weights sum to 1 and their mean over the bins is y."""
-    y = jnp.clip(y, bins[0], bins[-1])
-    low = jnp.clip(jnp.searchsorted(bins, y, side="right") - 1, 0, bins.shape[0] - 2)
-    upper = (y - bins[low]) / (bins[low + 1] - bins[low])
-    n = bins.shape[0]
-    return jax.nn.one_hot(low, n) * (1.0 - upper)[..., None] + jax.nn.one_hot(low + 1, n) * upper[..., None]
-
-
-def two_hot_loss(logits: jax.Array, target: jax.Array, bins: jax.Array) -> jax.Array:
-    """Cross-entropy of softmax(`logits`) against the two-hot code of symlog(`target`)."""
-    return -jnp.sum(two_hot(symlog(target), bins) * jax.nn.log_softmax(logits), axis=-1)
-
-
-def expected(logits: jax.Array, bins: jax.Array) -> jax.Array:
-    """The value a two-hot head predicts: symexp of the bins' mean under softmax(`logits`)."""
-    return symexp(jnp.sum(jax.nn.softmax(logits) * bins, axis=-1))
-
-
 # --------------------------------------------------------------------------- the heads
 
 
@@ -208,6 +178,12 @@ def value_after(heads: dict, h: jax.Array, hp: LookaheadHParams) -> jax.Array:
     seen a_t, and the value's targets hold a_t's own reward r_{t+1}; a return that has already
     counted r(h) adds γ times this, not V(h)."""
     return (value(heads, h, hp) - reward(heads, h, hp)) / hp.gamma
+
+
+def advantage(heads: dict, h: jax.Array) -> jax.Array:
+    """The advantage head's A(h): the return of the buttons h has taken less the mean over the
+    eight of the state before them."""
+    return nets.mlp(heads["advantage"], h, final_selu=False)[..., 0]
 
 
 def frame_value_logits(heads: dict, frames: jax.Array, arch, hp: LookaheadHParams) -> jax.Array:
@@ -390,12 +366,6 @@ def lookahead_terms(variant: Variant, params, hp: LookaheadHParams, xs: StepInpu
     else:
         terms["advantage_mse"] = jnp.zeros(())
     return terms
-
-
-def advantage(heads: dict, h: jax.Array) -> jax.Array:
-    """The advantage head's A(h): the return of the buttons h has taken less the mean over the
-    eight of the state before them."""
-    return nets.mlp(heads["advantage"], h, final_selu=False)[..., 0]
 
 
 def frame_value_term(variant: Variant, heads, hp: LookaheadHParams, outs, ret, known, is_first, truncated):
