@@ -177,6 +177,14 @@ class ControlOptions:
     value_coef: float = _opt(0.5, "ppo: weight of the value loss", traced=True)
     entropy_coef: float = _opt(0.01, "ppo and the replay learners: weight of the entropy bonus", traced=True)
     ppo_epochs: int = _opt(4, "ppo and onpolicy_ac: passes over each rollout")
+    critic_plan: str = _opt("off", "onpolicy_ac: one step of look-ahead through the model. Each step the eight button "
+                                   "combinations are scored Q(a) = predicted reward + gamma x the critic's value of "
+                                   "the model's state after a, and the buttons pressed are argmax log pi(a) + "
+                                   "plan_weight x Q(a). off: the controller alone; eval: the noise-free policy "
+                                   "(evaluations, test games); always: the games of training too, drawn from "
+                                   "pi(a) exp(plan_weight x Q(a))")
+    plan_weight: float = _opt(300.0, "onpolicy_ac with critic_plan: kappa, the weight of Q(a) against the "
+                                     "controller's log-probability", traced=True)
     ppo_minibatches: int = _opt(4, "ppo: minibatches per pass (batch x unroll must divide by it)")
 
 

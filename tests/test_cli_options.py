@@ -50,6 +50,7 @@ ACCEPTED = {
     ("advantage_weight", "0"),  # no advantage head (the default)
     ("head_grad", "0"),  # the heads learn without moving the model
     ("value_target_decay", "0"),  # the value's target is the head itself
+    ("plan_weight", "0"),  # the critic plan's buttons are the controller's
 }
 # seed 0; a crop at the frame's edge; --devices 0 (every device)
 COLLECT_ACCEPTED = {("--seed", "0"), ("--crop", 0, "0"), ("--crop", 1, "0"), ("--devices", "0")}

@@ -3,6 +3,15 @@ just played, from its real rewards.
 
 The model gives the controller its features; the credit comes from the game. With scope `all`
 the actor's and the critic's gradients also shape the core and the encoder.
+
+With a critic plan (`critic_plan`), the buttons pressed look one step ahead through the model.
+Each of the eight button combinations a is pressed with the real frame o_t in the model and
+scored Q(a) = r̂(a) + γ V(h_t(a)): the predicted reward and the critic's value of the model's
+state after it. The policy presses argmax_a log π(a) + κ Q(a), π the controller's buttons, κ
+`plan_weight`; it is the one-step improvement π(a) exp(κ Q(a)) of the controller, taken
+greedily. `eval` plans in the noise-free policy only; `always` also draws the buttons of
+training from π_ε(a) exp(κ Q(a)) (π_ε: with the exploration), so the critic values the planner
+and the clipped update moves the controller towards the plans that paid.
 """
 from __future__ import annotations
 
@@ -11,15 +20,21 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from cdrl.data.frames import model_obs
 from cdrl.data.stream import Chunk
+from cdrl.learners.game_batch import Observation
+from cdrl.learners.mpc_planner import plan_rollouts
 from cdrl.learners.ppo import clipped_surrogate
 from cdrl.learners.replay_base import (ReplayConfig, ReplayLearner, ReplayState, button_entropy, button_log_prob,
                                        critic_value)
+from cdrl.models.base import BUTTON_COMBOS, StepInput, Variant
 from cdrl.training.lookahead import lambda_returns
 from cdrl.options import CONTROL
 from cdrl.training.step import step_inputs
 
 SCOPES = ("controller", "all")
+# Where the critic plan presses the buttons: nowhere, in the noise-free policy, or in training too.
+CRITIC_PLANS = ("off", "eval", "always")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,11 +44,55 @@ class OnPolicyConfig(ReplayConfig):
 
     epochs: int = CONTROL.ppo_epochs
     scope: str = CONTROL.scope
+    critic_plan: str = CONTROL.critic_plan
 
     def __post_init__(self):
         super().__post_init__()
         if self.scope not in SCOPES:
             raise ValueError(f"scope must be controller or all, got {self.scope!r}")
+        if self.critic_plan not in CRITIC_PLANS:
+            raise ValueError(f"critic_plan must be one of {', '.join(CRITIC_PLANS)}, got {self.critic_plan!r}")
+
+
+def plan_values(variant: Variant, params, critic, carry, x: StepInput, gamma):
+    """`[B, C]`: Q(a) = r̂(a) + γ V(h_t(a)) of every button combination a (`BUTTON_COMBOS`)
+    pressed with the real step `x` (its action ignored) from the model's state `carry` before it:
+    the predicted reward and the critic's value of the state after (`plan_rollouts`, one step).
+    The critic's value at h_t is of the returns after a_t's reward, so the two add up to a_t's."""
+    rewards, h, _ = plan_rollouts(variant, params, carry, x, 1)
+    return (rewards[:, 0] + gamma * critic_value(critic, h[:, 0])).T
+
+
+def prior_log_probs(variant: Variant, params, carry, explore=0.0):
+    """`[B, C]`: log π(a) of every button combination under the controller's output from the
+    model's state `carry` (independent buttons, each drawn uniformly with chance `explore`)."""
+    probs = variant.heads(params, variant.fc(params, variant.features(carry)))["action"]
+    probs = (1.0 - explore) * probs + explore * 0.5
+    return button_log_prob(probs[:, None, :], jnp.asarray(BUTTON_COMBOS)[None])
+
+
+def critic_plan_fns(variant: Variant):
+    """(init, step) of the noise-free critic plan for one game, in the form of
+    `cdrl.evaluation.play`: it presses argmax_a log π(a) + κ Q(a) (`plan_values`,
+    `prior_log_probs`); at an episode's first frame nothing, as the controller does. Its
+    parameters are `{"model", "critic", "gamma", "kappa"}`, traced: one program for any."""
+
+    def init(key, params):
+        del key, params
+        return {"carry": variant.init_carry(1), "is_first": jnp.ones((1,), bool)}
+
+    def step(key, state, obs, params):
+        del key
+        x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, variant.arch.action_dim)),
+                      is_first=state["is_first"])
+        model = params["model"]
+        scores = (prior_log_probs(variant, model, state["carry"])
+                  + params["kappa"] * plan_values(variant, model, params["critic"], state["carry"], x, params["gamma"]))
+        best = jnp.where(state["is_first"][:, None], 0.0, jnp.asarray(BUTTON_COMBOS)[jnp.argmax(scores, -1)])
+        carry, _ = variant.step(model, state["carry"], x.replace(action=best))
+        return best[0], {"carry": carry, "is_first": jnp.zeros((1,), bool)}
+
+    return init, step
 
 
 def onpolicy_returns(h_values, reward, is_first, first_after, gamma, lam):
@@ -61,8 +120,31 @@ class OnPolicyAC(ReplayLearner):
     @classmethod
     def from_run(cls, cfg, model, game, env_params) -> "OnPolicyAC":
         config = OnPolicyConfig(num_envs=cfg.batch, unroll=cfg.unroll, replay=cfg.replay,
-                                model_updates=cfg.model_updates, epochs=cfg.ppo_epochs, scope=cfg.scope)
+                                model_updates=cfg.model_updates, epochs=cfg.ppo_epochs, scope=cfg.scope,
+                                critic_plan=cfg.critic_plan)
         return cls(model, game, config, cls.hparams(cfg, model), env_params)
+
+    def act(self, state: ReplayState, obs: Observation, key: jax.Array, explore=None):
+        """As every replay learner's, but with the critic plan `always` the buttons executed at t
+        are drawn now, from π_ε(a) exp(κ Q(a)) (the controller's output at t − 1 the prior, Q
+        with o_t), and nothing at an episode's first frame."""
+        if self.config.critic_plan != "always":
+            return super().act(state, obs, key, explore)
+        explore = self.exploration(state) if explore is None else explore
+        params, carry = state.model.params, state.model.carry
+        x = StepInput(obs=obs.frames, action=state.action, is_first=obs.is_first)
+        scores = (prior_log_probs(self.model, params, carry, explore)
+                  + self.hp.plan_weight * plan_values(self.model, params, state.critic, carry, x, self.hp.gamma))
+        drawn = jnp.asarray(BUTTON_COMBOS)[jax.random.categorical(key, scores)]
+        executed = jnp.where(obs.is_first[:, None], 0.0, drawn)
+        carry, out = self.model.step(params, carry, x.replace(action=executed))
+        return state.replace(model=state.model.replace(carry=carry), action=executed), executed, out
+
+    def policy(self, state: ReplayState):
+        if self.config.critic_plan == "off":
+            return super().policy(state)
+        return (*critic_plan_fns(self.model), {"model": state.model.params, "critic": state.critic,
+                                               "gamma": self.hp.gamma, "kappa": self.hp.plan_weight})
 
     def played_update(self, state: ReplayState, chunk: dict, carry0, explore, on):
         """The controller and the critic on the chunk just played, from its real rewards.

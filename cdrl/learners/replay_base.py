@@ -76,18 +76,19 @@ class ReplayHParams:
     lam: jax.Array  # λ of the critics' λ-returns
     entropy: jax.Array  # the actor's entropy bonus
     clip_eps: jax.Array  # `onpolicy_ac`: clip range of the probability ratio
+    plan_weight: jax.Array  # `onpolicy_ac` with a critic plan: κ, the weight of Q(a) against log π(a)
 
     @classmethod
     def create(cls, model: HParams, ctrl_opt: OptHParams | None = None, ascent=CONTROL.ascent,
                explore=CONTROL.noise_std, explore_decay=CONTROL.noise_decay, warmup_steps=CONTROL.warmup_steps,
                gamma=CONTROL.gamma, lam=CONTROL.gae_lambda, entropy=CONTROL.entropy_coef,
-               clip_eps=CONTROL.clip_eps) -> "ReplayHParams":
+               clip_eps=CONTROL.clip_eps, plan_weight=CONTROL.plan_weight) -> "ReplayHParams":
         """The defaults are a run's (`cdrl.options`); `ctrl_opt` is Adam at `ctrl_lr` with the
         gradient norm clipped at 100 unless given."""
         f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
         ctrl_opt = ctrl_opt if ctrl_opt is not None else OptHParams.create("adam", lr=CONTROL.ctrl_lr, grad_clip=100.0)
         return cls(model, ctrl_opt, f32(ascent), f32(explore), f32(explore_decay), f32(warmup_steps), f32(gamma),
-                   f32(lam), f32(entropy), f32(clip_eps))
+                   f32(lam), f32(entropy), f32(clip_eps), f32(plan_weight))
 
 
 @flax.struct.dataclass
@@ -184,7 +185,7 @@ class ReplayLearner(Learner):
                                                                                    grad_clip=100.0),
                                     ascent=cfg.ascent, explore=cfg.noise_std, explore_decay=cfg.noise_decay,
                                     warmup_steps=cfg.warmup_steps, gamma=cfg.gamma, lam=cfg.gae_lambda,
-                                    entropy=cfg.entropy_coef, clip_eps=cfg.clip_eps)
+                                    entropy=cfg.entropy_coef, clip_eps=cfg.clip_eps, plan_weight=cfg.plan_weight)
 
     def init(self, key: jax.Array) -> ReplayState:
         if not self.model.has_controller:

@@ -15,6 +15,7 @@ import dataclasses
 import math
 
 from cdrl import learners
+from cdrl.learners.onpolicy_ac import CRITIC_PLANS
 from cdrl.learners.thesis_ascent import SCOPES
 from cdrl.models import VARIANTS
 from cdrl.models.arch import ArchConfig, preset
@@ -86,10 +87,14 @@ class _RunConfigMethods:
                              "buffer)")
         choices = {"scope": SCOPES, "optimizer": tuple(OPTIMIZERS), "lr_schedule": SCHEDULES,
                    "obs_norm": OBS_NORMS, "level": tuple(LEVELS), "conv": FORMULATIONS,
-                   "data_policy": ("auto",) + tuple(POLICIES), "value_backup": VALUE_BACKUPS}
+                   "data_policy": ("auto",) + tuple(POLICIES), "value_backup": VALUE_BACKUPS,
+                   "critic_plan": CRITIC_PLANS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        if self.critic_plan != "off" and (self.kind != "online" or self.learner != "onpolicy_ac"):
+            raise ValueError(f"critic_plan {self.critic_plan!r} plans with onpolicy_ac's critic; got learner "
+                             f"{self.learner!r}")
         if self.kind == "offline" and self.data != "game":
             for name, default in (("env", ""), ("level", "thesis")):
                 if getattr(self, name) != default:
@@ -241,7 +246,7 @@ RANGES: dict[str, Range] = {
                      "horizon", "max_filter"), AT_LEAST_1),
     **dict.fromkeys(("lookahead_steps", "lookahead_stride", "imagined_frame_weight", "imagined_reward_balanced_weight",
                      "reward_head_weight", "cont_weight", "value_weight", "frame_value_weight", "advantage_weight",
-                     "head_grad"),
+                     "head_grad", "plan_weight"),
                     AT_LEAST_0),
     "value_target_decay": FRACTION,
     **dict.fromkeys(("lr_warmup", "lr_decay_steps", "seed", "devices", "eval_every", "warmup_steps", "weight_decay",

@@ -18,6 +18,10 @@ greedy buttons. The reference policies play the same games once: they do not lea
   real-pre-all-open  `real-pre-all` on reward_prediction (open loop on observations)
   real-pre-all-open-bal  the same, its pre-training also teaching the core the reward balanced over
                 its sign classes (`reward_balanced_weight` 0.003: a pellet eaten weighs as much as none)
+  real-plan-eval  `real-pre-all-open-bal` whose noise-free policy looks one step ahead through the
+                model (`--critic-plan eval`: each button combination scored by the predicted reward
+                and the critic's value after it, tilting the controller's buttons)
+  real-plan     the same, the games of training played so too (`--critic-plan always`)
   real-pre-all-bal  `real-pre-all` pre-trained with the same balanced term: against
                 `real-pre-all-open-bal`, does closed loop − help?
   real-all      `real-pre-all` without the pre-training (the model from scratch on Adam, as `critic`)
@@ -107,6 +111,10 @@ LOOK_PRETRAIN_BAL = {"variant": "final_proposal", "learner": "world_model", **LO
 LOOK_CLIP = {"lookahead_steps": 3, "head_grad": 1e-3, "grad_clip": 0.05, "gamma": 0.9,
              "reward_balanced_weight": 0.003, "imagined_reward_balanced_weight": 0.003}
 
+REAL_OPEN_BAL = {"variant": "reward_prediction", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
+                 "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "learner": "world_model",
+                                                 "reward_balanced_weight": 0.003}}
+
 # name -> options of the run (RunConfig fields) besides the budget's; `frames_factor` scales
 # the budget's game frames; `pretrain` first trains the world model offline for the budget's
 # `pretrain_steps` (RunConfig fields of that run).
@@ -126,9 +134,11 @@ CONFIGS: dict[str, dict] = {
                      "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "learner": "world_model"}},
     "real-pre-all-open": {"variant": "reward_prediction", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
                           "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "learner": "world_model"}},
-    "real-pre-all-open-bal": {"variant": "reward_prediction", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
-                              "warmup_steps": 0, "pretrain": {"variant": "reward_prediction", "learner": "world_model",
-                                                              "reward_balanced_weight": 0.003}},
+    "real-pre-all-open-bal": REAL_OPEN_BAL,
+    # `real-pre-all-open-bal` looking one step ahead through its model: each button combination
+    # scored by the predicted reward and the critic's value after it, tilting the controller.
+    "real-plan-eval": {**REAL_OPEN_BAL, "critic_plan": "eval", "plan_weight": 30.0},
+    "real-plan": {**REAL_OPEN_BAL, "critic_plan": "always", "plan_weight": 300.0},
     "real-pre-all-bal": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
                          "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "learner": "world_model",
                                                          "reward_balanced_weight": 0.003}},
