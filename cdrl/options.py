@@ -183,7 +183,7 @@ class ControlOptions:
                                    "plan_weight x Q(a). off: the controller alone; eval: the noise-free policy "
                                    "(evaluations, test games); always: the games of training too, drawn from "
                                    "pi(a) exp(plan_weight x Q(a))")
-    plan_weight: float = _opt(300.0, "onpolicy_ac with critic_plan: kappa, the weight of Q(a) against the "
+    plan_weight: float = _opt(30.0, "onpolicy_ac with critic_plan: kappa, the weight of Q(a) against the "
                                      "controller's log-probability", traced=True)
     ppo_minibatches: int = _opt(4, "ppo: minibatches per pass (batch x unroll must divide by it)")
 

@@ -86,7 +86,7 @@ def test_the_noise_free_plan_presses_the_best_plan_or_the_controllers_buttons():
     np.testing.assert_array_equal(np.asarray(first), np.zeros(3))
 
 
-def _learner(critic_plan: str, plan_weight: float = 300.0):
+def _learner(critic_plan: str, plan_weight: float = 30.0):
     g, params = games.left_bonus_game()
     v = make_variant("final_proposal", TINY)
     cfg = oac.OnPolicyConfig(num_envs=8, unroll=8, replay=16, model_updates=2, critic_plan=critic_plan)
@@ -140,8 +140,9 @@ def test_the_plan_is_onpolicy_acs_and_a_known_choice():
 @pytest.mark.e2e
 def test_the_critic_plan_learns_a_trivially_learnable_reward():
     """With a bonus for turning left, `onpolicy_ac` playing its critic plan in training too
-    learns to turn left: its noise-free plan on held-out seeds clearly beats random play."""
-    learner, state = _learner("always")
+    learns to turn left: its noise-free plan on held-out seeds clearly beats random play. (At κ
+    300 it explores too little to find the bonus: +0.56 against random's +6.08.)"""
+    learner, state = _learner("always", plan_weight=30.0)
     for _ in range(60):
         state, metrics = train_program(learner, state)
     assert float(metrics["controller_on"]) == 1.0 and not bool(metrics["diverged"])

@@ -138,7 +138,7 @@ CONFIGS: dict[str, dict] = {
     # `real-pre-all-open-bal` looking one step ahead through its model: each button combination
     # scored by the predicted reward and the critic's value after it, tilting the controller.
     "real-plan-eval": {**REAL_OPEN_BAL, "critic_plan": "eval", "plan_weight": 30.0},
-    "real-plan": {**REAL_OPEN_BAL, "critic_plan": "always", "plan_weight": 300.0},
+    "real-plan": {**REAL_OPEN_BAL, "critic_plan": "always", "plan_weight": 30.0},
     "real-pre-all-bal": {"variant": "final_proposal", "learner": "onpolicy_ac", "scope": "all", "noise_std": 0.05,
                          "warmup_steps": 0, "pretrain": {"variant": "final_proposal", "learner": "world_model",
                                                          "reward_balanced_weight": 0.003}},
