@@ -71,10 +71,16 @@ def prior_log_probs(variant: Variant, params, carry, explore=0.0):
     return button_log_prob(probs[:, None, :], jnp.asarray(BUTTON_COMBOS)[None])
 
 
+def tilted_scores(variant: Variant, params, critic, carry, x: StepInput, gamma, kappa, explore=0.0):
+    """`[B, C]`: log π(a) + κ Q(a) of every button combination (`prior_log_probs`, `plan_values`)."""
+    return (prior_log_probs(variant, params, carry, explore)
+            + kappa * plan_values(variant, params, critic, carry, x, gamma))
+
+
 def critic_plan_fns(variant: Variant):
     """(init, step) of the noise-free critic plan for one game, in the form of
-    `cdrl.evaluation.play`: it presses argmax_a log π(a) + κ Q(a) (`plan_values`,
-    `prior_log_probs`); at an episode's first frame nothing, as the controller does. Its
+    `cdrl.evaluation.play`: it presses argmax_a log π(a) + κ Q(a) (`tilted_scores`); at an
+    episode's first frame nothing, as the controller does. Its
     parameters are `{"model", "critic", "gamma", "kappa"}`, traced: one program for any."""
 
     def init(key, params):
@@ -86,8 +92,7 @@ def critic_plan_fns(variant: Variant):
         x = StepInput(obs=model_obs(obs, variant.arch)[None], action=jnp.zeros((1, variant.arch.action_dim)),
                       is_first=state["is_first"])
         model = params["model"]
-        scores = (prior_log_probs(variant, model, state["carry"])
-                  + params["kappa"] * plan_values(variant, model, params["critic"], state["carry"], x, params["gamma"]))
+        scores = tilted_scores(variant, model, params["critic"], state["carry"], x, params["gamma"], params["kappa"])
         best = jnp.where(state["is_first"][:, None], 0.0, jnp.asarray(BUTTON_COMBOS)[jnp.argmax(scores, -1)])
         carry, _ = variant.step(model, state["carry"], x.replace(action=best))
         return best[0], {"carry": carry, "is_first": jnp.zeros((1,), bool)}
@@ -133,8 +138,7 @@ class OnPolicyAC(ReplayLearner):
         explore = self.exploration(state) if explore is None else explore
         params, carry = state.model.params, state.model.carry
         x = StepInput(obs=obs.frames, action=state.action, is_first=obs.is_first)
-        scores = (prior_log_probs(self.model, params, carry, explore)
-                  + self.hp.plan_weight * plan_values(self.model, params, state.critic, carry, x, self.hp.gamma))
+        scores = tilted_scores(self.model, params, state.critic, carry, x, self.hp.gamma, self.hp.plan_weight, explore)
         drawn = jnp.asarray(BUTTON_COMBOS)[jax.random.categorical(key, scores)]
         executed = jnp.where(obs.is_first[:, None], 0.0, drawn)
         carry, out = self.model.step(params, carry, x.replace(action=executed))
