@@ -40,7 +40,8 @@ greedy buttons. The reference policies play the same games once: they do not lea
   plan-pre-bal-mirror  the same, half of its pre-training's streams seen in a mirror (`--mirror-streams`)
   imagine-look-pre-bal, critic-look-pre-bal  `imagine` and `critic` on `plan-pre-bal`'s world model
                 (5 imagined steps and the value head's value at the end)
-  ppo           PPO at the same game frames; ppo-10x at ten times them
+  ppo           PPO at the same game frames; ppo-10x at ten times them; ppo-8x at eight (384 000
+                frames at the 48k budget)
 
 Runs live under a work directory, one per configuration and seed (`NAME/seedS`); a finished
 run is read back, an unfinished one resumed, so an experiment continues where it stopped.
@@ -167,6 +168,7 @@ CONFIGS: dict[str, dict] = {
                             "pretrain": LOOK_PRETRAIN_BAL},
     "ppo": {"learner": "ppo"},
     "ppo-10x": {"learner": "ppo", "frames_factor": 10},
+    "ppo-8x": {"learner": "ppo", "frames_factor": 8},  # 384 000 frames at the 48k budget
 }
 
 
