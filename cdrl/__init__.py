@@ -10,5 +10,5 @@ Sub-packages, lowest layer first (each imports only from those above it in this 
   and their registry;
 - `cdrl.runs`: run configs, run directories, checkpoints, offline/online runs, sweeps;
 - `cdrl.analysis`: reading finished runs back: tables and the thesis's figures;
-- `cdrl.cli`: the `cdrl` command.
+- `cdrl.cli`: the `cdrl` command (`cdrl.cli_report`: its `eval` and `plot`).
 """

@@ -11,6 +11,7 @@ import json
 import sys
 from pathlib import Path
 
+from cdrl.cli_report import USER_ERRORS, cmd_eval, cmd_plot
 from cdrl.data.gymrec import OBS_MODES
 from cdrl.evaluation.play import TEST_SEED
 from cdrl.options import SECTIONS, section_of
@@ -23,10 +24,6 @@ OLD_OPTION_NAMES = {"learner": ("--controller",)}
 LR_CANDIDATES = (3.0, 1.0, 0.5, 0.2, 0.1, 0.05, 0.02, 0.01)
 LR_THRESHOLD = 1.0
 _TYPES = {"int": int, "float": float, "str": str}  # RunConfig's field annotations (bool: --x/--no-x)
-# What a command reports as its error (a message, exit 2) rather than a traceback: bad input
-# (ValueError, its DatasetError and DataChangedError), files (OSError), and runs and
-# checkpoints that cannot go on (RuntimeError: CheckpointError, DivergenceError, LockedError).
-USER_ERRORS = (ValueError, OSError, RuntimeError)
 SECTION_OF = section_of()
 ALLOW_DATA_CHANGE_HELP = ("with --resume: go on although the data set changed since the run began (the run's "
                           "data.json records the change and the step); without it such a resume is refused, "
@@ -153,81 +150,6 @@ def _cmd_lr_search(args) -> int:
           "no candidate stayed under the threshold: try lower rates")
     print(json.dumps(result))
     return 0 if chosen is not None else 1
-
-
-def _cmd_eval(args) -> int:
-    for name, least in (("games", 1), ("every", 1), ("video_seed", 0)):
-        if getattr(args, name) < least:
-            print(f"cdrl eval: --{name.replace('_', '-')} must be at least {least}, got {getattr(args, name)}",
-                  file=sys.stderr)
-            return 2
-    if args.video and not args.policy:
-        print("cdrl eval: --video records a game of a learned policy; give --policy RUN_DIR", file=sys.stderr)
-        return 2
-    if args.policy:
-        return _cmd_eval_policy(args)
-    if args.imagination:
-        return _cmd_eval_imagination(args)
-    if not args.run_dirs:
-        print("cdrl eval: give RUN_DIR(s), --policy RUN_DIR or --imagination RUN_DIR", file=sys.stderr)
-        return 2
-    from cdrl.analysis.report import eval_runs
-
-    try:
-        rows = eval_runs([Path(p) for p in args.run_dirs], episodes=args.episodes, horizon=args.horizon,
-                         context=args.context)
-    except USER_ERRORS as exc:
-        print(f"cdrl eval: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(rows))
-    return 0
-
-
-def _cmd_eval_policy(args) -> int:
-    from cdrl.evaluation.play import format_table
-    from cdrl.analysis.policy_video import policy_run_video
-    from cdrl.runs.online import eval_policy_run
-
-    try:
-        rows = eval_policy_run(Path(args.policy), episodes=args.episodes)
-        video = policy_run_video(Path(args.policy), args.video_seed) if args.video else None
-    except USER_ERRORS as exc:
-        print(f"cdrl eval: {exc}", file=sys.stderr)
-        return 2
-    print(format_table(rows))
-    print(json.dumps(rows))
-    if video:
-        print(f"wrote {video}")
-    return 0
-
-
-def _cmd_eval_imagination(args) -> int:
-    from cdrl.analysis.imagination_video import imagination_report, summary
-
-    try:
-        result, written = imagination_report(Path(args.imagination), games=args.games, every=args.every,
-                                             out=args.out, video=not args.no_video, reward_from=args.reward_from)
-    except USER_ERRORS as exc:
-        print(f"cdrl eval: {exc}", file=sys.stderr)
-        return 2
-    print(summary(result))
-    for path in written:
-        print(f"wrote {path}")
-    return 0
-
-
-def _cmd_plot(args) -> int:
-    from cdrl.analysis.plots import plot_runs
-
-    try:
-        written = plot_runs([Path(p) for p in args.run_dirs], out_dir=Path(args.out) if args.out else None,
-                            groups=args.groups)
-    except USER_ERRORS as exc:
-        print(f"cdrl plot: {exc}", file=sys.stderr)
-        return 2
-    for path in written:
-        print(path)
-    return 0
 
 
 def _use_cpu_devices(count: int) -> None:
@@ -371,7 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "where the run trains one, else the variant's)")
     ev.add_argument("--no-video", action="store_true",
                     help="with --imagination: write no RUN_DIR/imagination.gif of real and imagined frames")
-    ev.set_defaults(func=_cmd_eval)
+    ev.set_defaults(func=cmd_eval)
 
     plot = command("plot", help="write the thesis's figures of one or more runs as PNG files")
     plot.add_argument("run_dirs", nargs="+", metavar="RUN_DIR")
@@ -379,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--groups", nargs="+", default=None, metavar="GROUP",
                       help="parameter groups of the norm-ratio figure, e.g. obs_enc/conv3/kernel "
                            "(default: the thesis's encoder layer 4 and decoder layer 3 kernels)")
-    plot.set_defaults(func=_cmd_plot)
+    plot.set_defaults(func=cmd_plot)
 
     col = command("collect", help="record episodes of the built-in game, or of any gymnasium game (--env), "
                                           "to a data set directory")
