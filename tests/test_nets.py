@@ -1,6 +1,7 @@
 """The networks against their definitions: layer sizes, transposed-convolution semantics,
 the LSTM against the thesis's equations, initialisation scales, errors on bad configs."""
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -277,6 +278,47 @@ def test_lstm_cell_equals_thesis_equations():
     h = o * np.tanh(c)
     np.testing.assert_allclose(np.asarray(state.c), c, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.asarray(state.h), h, rtol=1e-5, atol=1e-6)
+
+
+def _lstm_by_steps(params, state, xs, is_first):
+    """The LSTM over time as a Python loop over `lstm_cell`, the state zero at each episode start."""
+    states = []
+    for t in range(xs.shape[0]):
+        state = jax.tree.map(lambda a: jnp.where(is_first[t][:, None], 0.0, a), state)
+        state = nets.lstm_cell(params, state, xs[t])
+        states.append(state)
+    return state, jax.tree.map(lambda *a: jnp.stack(a), *states)
+
+
+def test_lstm_unroll_equals_its_steps_in_values_and_gradients():
+    """`lstm_unroll` hoists the input product and sums the recurrent kernel's gradient after its
+    scan: the values and every gradient equal a loop over `lstm_cell`, under jit, grad and vmap."""
+    T, B, n_in, n_h = 7, 3, 5, 4
+    keys = jax.random.split(jax.random.PRNGKey(3), 5)
+    params = nets.init_lstm(keys[0], n_in, n_h)
+    params["bias"] = jax.random.normal(keys[1], params["bias"].shape)
+    xs = jax.random.normal(keys[2], (T, B, n_in))
+    is_first = jnp.asarray(np.random.default_rng(0).uniform(size=(T, B)) < 0.25)
+    state = nets.LSTMState(jax.random.normal(keys[3], (B, n_h)), jax.random.normal(keys[4], (B, n_h)))
+
+    def loss(run, params, state, xs):
+        final, states = run(params, state, xs, is_first)
+        return jnp.sum(jnp.sin(states.h) * jnp.arange(n_h)) + jnp.sum(states.c ** 2) + jnp.sum(3 * final.h)
+
+    fused = functools.partial(nets.lstm_unroll, unroll=2)
+    for got, want in zip(jax.jit(fused)(params, state, xs, is_first), _lstm_by_steps(params, state, xs, is_first)):
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), got, want)
+    grad = jax.grad(loss, argnums=(1, 2, 3))
+    want = grad(_lstm_by_steps, params, state, xs)
+    got = jax.jit(grad, static_argnums=0)(fused, params, state, xs)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5), got, want)
+    # A kernel per configuration, as a sweep has it.
+    stacked = jax.tree.map(lambda a: jnp.stack([a, 1.3 * a]), params)
+    per_config = jax.vmap(lambda p: jax.grad(loss, argnums=1)(fused, p, state, xs))
+    for i in range(2):
+        one = jax.tree.map(lambda a: a[i], stacked)
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a[i], b, rtol=1e-4, atol=1e-5),
+                     jax.jit(per_config)(stacked), jax.grad(loss, argnums=1)(_lstm_by_steps, one, state, xs))
 
 
 def test_initialisation_scales():

@@ -23,11 +23,21 @@ class OpenLoop(Variant):
     """Variants whose input does not depend on their own predictions.
 
     `step` is encode -> recur -> decode; `unroll` runs the encoder and decoder over all T
-    frames at once and scans only `recur`, the recurrent core.
+    frames at once and runs only the recurrent core step by step (`core`).
     """
 
     def recur(self, params: dict, carry: Carry, k: jax.Array, is_first: jax.Array):
         raise NotImplementedError
+
+    def core(self, params: dict, carry: Carry, ks: jax.Array, is_first: jax.Array):
+        """The recurrent core over all T codes `ks`: (carry, codes d, the carry after every
+        step). By default a scan of `recur`."""
+        def body(c, kx):
+            c, d = self.recur(params, c, kx[0], kx[1])
+            return c, (d, c)
+
+        carry, (ds, carries) = jax.lax.scan(body, carry, (ks, is_first), unroll=CORE_UNROLL)
+        return carry, ds, carries
 
     def step(self, params, carry, x):
         k = self.encode(params, x.obs, x.action)
@@ -35,20 +45,12 @@ class OpenLoop(Variant):
         return carry, self._outputs(params, k, d)
 
     def unroll(self, params, carry, xs):
-        ks = self.encode(params, xs.obs, xs.action)
-        carry, ds = jax.lax.scan(
-            lambda c, kx: self.recur(params, c, kx[0], kx[1]), carry, (ks, xs.is_first), unroll=CORE_UNROLL
-        )
-        return carry, self._outputs(params, ks, ds)
+        carry, outs, _ = self.unroll_states(params, carry, xs)
+        return carry, outs
 
     def unroll_states(self, params, carry, xs):
         ks = self.encode(params, xs.obs, xs.action)
-
-        def body(c, kx):
-            c, d = self.recur(params, c, kx[0], kx[1])
-            return c, (d, c)
-
-        carry, (ds, carries) = jax.lax.scan(body, carry, (ks, xs.is_first), unroll=CORE_UNROLL)
+        carry, ds, carries = self.core(params, carry, ks, xs.is_first)
         return carry, self._outputs(params, ks, ds), carries
 
 
@@ -68,7 +70,11 @@ class BaselineFF(OpenLoop):
 
 
 class Main(OpenLoop):
-    """Figure 3.2: k_t = E_o(o_t); h_t = LSTM(k_t); d_{t+1} = FC(h_t); prediction D_o(d_{t+1})."""
+    """Figure 3.2: k_t = E_o(o_t); h_t = LSTM(k_t); d_{t+1} = FC(h_t); prediction D_o(d_{t+1}).
+
+    Over a chunk only the LSTM's recurrent product runs step by step (`nets.lstm_unroll`);
+    its input product and the FC layer run over all T steps at once.
+    """
 
     name = "main"
 
@@ -78,10 +84,22 @@ class Main(OpenLoop):
     def init_carry(self, batch):
         return nets.lstm_zeros(batch, self.arch.lstm_size)
 
+    def core_input(self, k: jax.Array) -> jax.Array:
+        """What the LSTM reads of the input code k."""
+        return k
+
+    def readout(self, params: dict, k: jax.Array, h: jax.Array) -> jax.Array:
+        """The core's output code d_{t+1} from the input code k_t and the LSTM's output h_t."""
+        return self.fc(params, h)
+
     def recur(self, params, carry, k, is_first):
         carry = reset_where(is_first, self.init_carry(k.shape[0]), carry)
-        carry = nets.lstm_cell(params["lstm"], carry, k)
-        return carry, self.fc(params, carry.h)
+        carry = nets.lstm_cell(params["lstm"], carry, self.core_input(k))
+        return carry, self.readout(params, k, carry.h)
+
+    def core(self, params, carry, ks, is_first):
+        carry, states = nets.lstm_unroll(params["lstm"], carry, self.core_input(ks), is_first, CORE_UNROLL)
+        return carry, self.readout(params, ks, states.h), states
 
 
 class MainAction(Main):
@@ -97,9 +115,8 @@ class Residual(Main):
     name = "residual"
     shared_code_space = True
 
-    def recur(self, params, carry, k, is_first):
-        carry, delta = super().recur(params, carry, k, is_first)
-        return carry, k + delta
+    def readout(self, params, k, h):
+        return k + self.fc(params, h)
 
 
 class ResidualError(Main):
@@ -107,6 +124,9 @@ class ResidualError(Main):
 
     name = "residual_error"
     shared_code_space = True
+
+    # The LSTM reads the carried prediction: a scan of `recur`, step by step.
+    core = OpenLoop.core
 
     def init_carry(self, batch):
         return {"lstm": super().init_carry(batch), "pred_code": jnp.zeros((batch, self.arch.obs_code))}
@@ -128,8 +148,8 @@ class BaselineRecurrent(Main):
     shared_code_space = True
     stages = True
 
-    def recur(self, params, carry, k, is_first):
-        return super().recur(params, carry, jax.lax.stop_gradient(k), is_first)
+    def core_input(self, k):
+        return jax.lax.stop_gradient(k)
 
     def _outputs(self, params, k, d):
         out = super()._outputs(params, k, d)
