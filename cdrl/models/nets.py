@@ -180,11 +180,14 @@ def lstm_zeros(batch: int, n_hidden: int) -> LSTMState:
 
 def lstm_cell(params: Params, state: LSTMState, x: jax.Array) -> LSTMState:
     """One LSTM step (thesis eq. 3.4) on inputs `x` `[B, n_in]`."""
-    z = x @ params["w_input"] + state.h @ params["w_recurrent"] + params["bias"]
+    return _gates(x @ params["w_input"] + state.h @ params["w_recurrent"] + params["bias"], state.c)
+
+
+def _gates(z: jax.Array, c_prev: jax.Array) -> LSTMState:
+    """The LSTM's state from its gates' pre-activations `z` `[B, 4 n_hidden]` and the carousel before."""
     f, i, o, u = jnp.split(z, 4, axis=-1)
-    c = jax.nn.sigmoid(f) * state.c + jax.nn.sigmoid(i) * jnp.tanh(u)
-    h = jax.nn.sigmoid(o) * jnp.tanh(c)
-    return LSTMState(h, c)
+    c = jax.nn.sigmoid(f) * c_prev + jax.nn.sigmoid(i) * jnp.tanh(u)
+    return LSTMState(jax.nn.sigmoid(o) * jnp.tanh(c), c)
 
 
 def lstm_unroll(params: Params, state: LSTMState, xs: jax.Array, is_first: jax.Array,
@@ -208,10 +211,8 @@ def _recurrent_steps(w_recurrent, z_in, state, is_first, unroll):
         z_t, first = inp
         reset = first[:, None]
         h_prev, c_prev = jnp.where(reset, 0.0, carry.h), jnp.where(reset, 0.0, carry.c)
-        f, i, o, u = jnp.split(z_t + h_prev @ w_recurrent, 4, axis=-1)
-        c = jax.nn.sigmoid(f) * c_prev + jax.nn.sigmoid(i) * jnp.tanh(u)
-        h = jax.nn.sigmoid(o) * jnp.tanh(c)
-        return LSTMState(h, c), (LSTMState(h, c), h_prev)
+        state = _gates(z_t + h_prev @ w_recurrent, c_prev)
+        return state, (state, h_prev)
 
     final, (states, h_prevs) = jax.lax.scan(body, state, (z_in, is_first), unroll=unroll)
     return (final, states), h_prevs
